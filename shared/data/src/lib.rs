@@ -1,0 +1,1 @@
+//! LeRobot data (placeholder until the data crate lands).

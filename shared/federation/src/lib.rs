@@ -1,0 +1,1 @@
+//! Federation (placeholder until the protocol lands).

@@ -1,0 +1,1 @@
+//! SO-100 simulation (placeholder until the sim lands).

@@ -1,1 +1,25 @@
-//! Federation (placeholder until the protocol lands).
+//! The federation spine shared by the server and the clients (native and wasm): the exchanged tensors, the
+//! versioned protocol and binary update codec, aggregation strategies and the client round loop.
+//!
+//! No tokio, axum or wasm-bindgen: this crate compiles for `wasm32-unknown-unknown`.
+
+pub mod client;
+pub mod codec;
+pub mod error;
+pub mod evaluate;
+pub mod protocol;
+pub mod strategy;
+pub mod tensors;
+
+pub use client::{
+    ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput, LocalTrainer, TrainOutput,
+    run_client,
+};
+pub use codec::{Reassembler, UpdateLimits};
+pub use error::{AggregateError, BoxError, CodecError, TensorError};
+pub use evaluate::{EvalMetrics, Evaluator};
+pub use protocol::{
+    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage, StrategyParams,
+};
+pub use strategy::{FedAvg, Strategy};
+pub use tensors::{NamedTensors, Tensor, TensorSpec};

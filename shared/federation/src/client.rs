@@ -1,0 +1,223 @@
+//! The client round loop shared by the native and the browser clients.
+//!
+//! Runtime-agnostic: plain async, no executor, no clock of its own (`Instant` panics on wasm32), so the
+//! platform supplies both through [`ClientTransport`].
+
+use std::future::Future;
+
+use crate::codec::{encode_frames, encode_payload};
+use crate::error::{BoxError, TensorError};
+use crate::protocol::{Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage};
+use crate::tensors::NamedTensors;
+
+/// What a round of local training produced.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainOutput {
+    /// The trainable tensors after local training (not a delta), same names and shapes as the global ones.
+    pub update: NamedTensors,
+    pub examples: u64,
+    pub train_loss: f64,
+}
+
+/// Loss of the current tensors on the client's held-out split.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EvalOutput {
+    pub examples: u64,
+    pub loss: f64,
+}
+
+/// Trains the trainable tensors on the local shard. The policy implements this (natively and in the browser).
+pub trait LocalTrainer {
+    fn capabilities(&self) -> Capabilities;
+
+    /// Replaces the trainable tensors with the global ones; frozen tensors are untouched.
+    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError>;
+
+    /// Runs `task.local_steps` steps at `task.batch_size` and `task.lr` from the tensors last set.
+    fn train(&mut self, task: &RoundTask) -> impl Future<Output = Result<TrainOutput, BoxError>>;
+
+    /// Evaluates the tensors last set on the local held-out split.
+    fn evaluate(&mut self) -> impl Future<Output = Result<EvalOutput, BoxError>>;
+}
+
+/// The client's connection to the server: a WebSocket for control and update frames, HTTP for models.
+pub trait ClientTransport {
+    /// Sends one text frame (a JSON control message).
+    fn send_text(&mut self, text: String) -> impl Future<Output = Result<(), BoxError>>;
+
+    /// Sends one binary frame (a chunk of an update).
+    fn send_binary(&mut self, frame: Vec<u8>) -> impl Future<Output = Result<(), BoxError>>;
+
+    /// Next text frame from the server; `None` once the connection is closed.
+    fn recv_text(&mut self) -> impl Future<Output = Result<Option<String>, BoxError>>;
+
+    /// Downloads the global trainable tensors of `version` as safetensors bytes (`GET /model/{version}`).
+    fn fetch_model(&mut self, version: u64) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
+
+    /// Seconds on a monotonic clock (`performance.now()` in browsers).
+    fn now_seconds(&self) -> f64;
+}
+
+/// Who this client is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ClientOptions {
+    pub name: String,
+    pub auth_token: Option<String>,
+}
+
+/// Progress notifications, for progress bars and logs.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ClientEvent {
+    Joined { client_id: u64 },
+    Task { round: u64, local_steps: u32 },
+    Trained { round: u64, examples: u64, train_loss: f64 },
+    Uploaded { round: u64, bytes: u64 },
+    RoundClosed { round: u64, accepted: bool },
+    Refused { code: ErrorCode, message: String },
+}
+
+/// What a client did over a run.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ClientSummary {
+    pub client_id: u64,
+    pub rounds_trained: u64,
+    pub bytes_up: u64,
+    pub bytes_down: u64,
+    /// Non-fatal refusals from the server (e.g. a stale update).
+    pub refusals: Vec<(ErrorCode, String)>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error("transport: {0}")]
+    Transport(BoxError),
+    #[error("local trainer: {0}")]
+    Trainer(BoxError),
+    #[error("server refused ({}): {message}", code.as_str())]
+    Refused { code: ErrorCode, message: String },
+    #[error("protocol: {0}")]
+    Protocol(String),
+    #[error("global model version {version}: {source}")]
+    Model { version: u64, source: TensorError },
+    #[error("connection closed before the run finished")]
+    Closed,
+}
+
+/// Joins, then for each task: fetches the model if its version changed, trains, uploads the update and metrics.
+/// Returns when the server says the run is finished.
+pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
+    transport: &mut T,
+    trainer: &mut L,
+    options: &ClientOptions,
+    mut on_event: impl FnMut(ClientEvent),
+) -> Result<ClientSummary, ClientError> {
+    let mut link = Link { transport, bytes_up: 0, bytes_down: 0 };
+    link.send(&ClientMessage::Join {
+        protocol_version: PROTOCOL_VERSION,
+        auth_token: options.auth_token.clone(),
+        name: options.name.clone(),
+        capabilities: trainer.capabilities(),
+    })
+    .await?;
+    let (client_id, max_frame_bytes) = match link.recv().await? {
+        ServerMessage::Welcome { client_id, max_frame_bytes, .. } => (client_id, max_frame_bytes as usize),
+        ServerMessage::Error { code, message } => return Err(ClientError::Refused { code, message }),
+        other => return Err(ClientError::Protocol(format!("expected welcome, got {other:?}"))),
+    };
+    on_event(ClientEvent::Joined { client_id });
+    let mut summary = ClientSummary { client_id, ..ClientSummary::default() };
+    let mut global: Option<(u64, NamedTensors)> = None;
+    loop {
+        match link.recv().await? {
+            ServerMessage::RoundTask(task) => {
+                on_event(ClientEvent::Task { round: task.round, local_steps: task.local_steps });
+                let start = link.transport.now_seconds();
+                let bytes_before = link.bytes_up;
+                let tensors = match global.take() {
+                    Some((version, tensors)) if version == task.model_version => tensors,
+                    _ => link.fetch_model(task.model_version).await?,
+                };
+                trainer.set_global(&tensors).map_err(ClientError::Trainer)?;
+                global = Some((task.model_version, tensors));
+                if task.eval_request {
+                    let eval = trainer.evaluate().await.map_err(ClientError::Trainer)?;
+                    link.send(&ClientMessage::EvalResult { round: task.round, examples: eval.examples, loss: eval.loss })
+                        .await?;
+                }
+                let out = trainer.train(&task).await.map_err(ClientError::Trainer)?;
+                on_event(ClientEvent::Trained { round: task.round, examples: out.examples, train_loss: out.train_loss });
+                let payload = encode_payload(&out.update);
+                link.send(&ClientMessage::UpdateHeader {
+                    round: task.round,
+                    examples: out.examples,
+                    train_loss: out.train_loss,
+                    payload_bytes: payload.len() as u64,
+                })
+                .await?;
+                for frame in encode_frames(&payload, task.round, max_frame_bytes) {
+                    link.bytes_up += frame.len() as u64;
+                    link.transport.send_binary(frame).await.map_err(ClientError::Transport)?;
+                }
+                on_event(ClientEvent::Uploaded { round: task.round, bytes: link.bytes_up - bytes_before });
+                let seconds = link.transport.now_seconds() - start;
+                let metrics = RoundMetrics {
+                    round: task.round,
+                    examples: out.examples,
+                    train_loss: out.train_loss,
+                    seconds,
+                    bytes_up: link.bytes_up,
+                    bytes_down: link.bytes_down,
+                };
+                link.send(&ClientMessage::Metrics(metrics)).await?;
+                summary.rounds_trained += 1;
+            }
+            ServerMessage::RoundClosed { round, accepted, .. } => {
+                on_event(ClientEvent::RoundClosed { round, accepted });
+            }
+            ServerMessage::Error { code, message } if code.is_fatal() => {
+                return Err(ClientError::Refused { code, message });
+            }
+            ServerMessage::Error { code, message } => {
+                on_event(ClientEvent::Refused { code, message: message.clone() });
+                summary.refusals.push((code, message));
+            }
+            ServerMessage::Finished { .. } => {
+                summary.bytes_up = link.bytes_up;
+                summary.bytes_down = link.bytes_down;
+                return Ok(summary);
+            }
+            other @ ServerMessage::Welcome { .. } => {
+                return Err(ClientError::Protocol(format!("unexpected {other:?}")));
+            }
+        }
+    }
+}
+
+/// A transport with byte counters and JSON on top.
+struct Link<'a, T> {
+    transport: &'a mut T,
+    bytes_up: u64,
+    bytes_down: u64,
+}
+
+impl<T: ClientTransport> Link<'_, T> {
+    async fn send(&mut self, msg: &ClientMessage) -> Result<(), ClientError> {
+        let text = serde_json::to_string(msg).expect("client messages serialize");
+        self.bytes_up += text.len() as u64;
+        self.transport.send_text(text).await.map_err(ClientError::Transport)
+    }
+
+    async fn recv(&mut self) -> Result<ServerMessage, ClientError> {
+        let text = self.transport.recv_text().await.map_err(ClientError::Transport)?.ok_or(ClientError::Closed)?;
+        self.bytes_down += text.len() as u64;
+        serde_json::from_str(&text).map_err(|e| ClientError::Protocol(format!("bad server message: {e}")))
+    }
+
+    async fn fetch_model(&mut self, version: u64) -> Result<NamedTensors, ClientError> {
+        let bytes = self.transport.fetch_model(version).await.map_err(ClientError::Transport)?;
+        self.bytes_down += bytes.len() as u64;
+        let tensors = NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Model { version, source })?;
+        tensors.validate(&tensors.spec()).map_err(|source| ClientError::Model { version, source })?;
+        Ok(tensors)
+    }
+}

@@ -1,1 +1,28 @@
-pub fn hello() {}
+//! SmolVLA, LeRobot-exact, in burn: configuration and presets, weights by LeRobot key names,
+//! the model (SigLIP + connector + truncated SmolLM2 + action expert), flow-matching training of
+//! exactly the parameters SmolVLA trains, and the parity check against LeRobot's golden fixtures.
+//!
+//! The backend is chosen through burn's `Device` (flex on CPU, wgpu/WebGPU on GPUs); nothing in
+//! this crate depends on which.
+
+#![recursion_limit = "256"]
+
+pub mod batch;
+pub mod config;
+pub mod error;
+pub mod layers;
+pub mod normalize;
+pub mod parity;
+pub mod smolvla;
+pub mod tokenizer;
+pub mod train;
+pub mod vision;
+pub mod vlm_with_expert;
+pub mod weights;
+
+pub use batch::Batch;
+pub use config::{ParamSpec, SmolVlaConfig};
+pub use error::PolicyError;
+pub use smolvla::SmolVla;
+pub use train::{CosineWarmup, StepReport, Trainer};
+pub use weights::{HostTensor, WeightMap};

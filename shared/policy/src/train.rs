@@ -1,0 +1,212 @@
+//! Training SmolVLA's trainable set exactly as LeRobot does: AdamW (torch semantics, decoupled
+//! weight decay) over the expert and the five projections only, global grad-norm clipping, the
+//! cosine-with-warmup schedule, and seeded Beta(1.5, 1) time / Gaussian noise sampling.
+//! The frozen tensors live in a separate store that no optimizer ever sees.
+
+use std::collections::BTreeMap;
+
+use burn::tensor::{Device, Tensor};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use crate::batch::{Batch, Prepared, prepare_actions};
+use crate::config::SmolVlaConfig;
+use crate::error::PolicyError;
+use crate::smolvla::{FlowMatchingOutput, SmolVla, gaussian_noise};
+use crate::weights::{HostTensor, ParamStore, WeightMap, check_keys};
+
+/// AdamW hyper-parameters (LeRobot's SmolVLA preset by default).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AdamWConfig {
+    pub betas: (f64, f64),
+    pub eps: f64,
+    pub weight_decay: f64,
+    pub grad_clip_norm: f64,
+}
+
+impl AdamWConfig {
+    pub fn from_policy(cfg: &SmolVlaConfig) -> Self {
+        Self {
+            betas: cfg.optimizer_betas,
+            eps: cfg.optimizer_eps,
+            weight_decay: cfg.optimizer_weight_decay,
+            grad_clip_norm: cfg.optimizer_grad_clip_norm,
+        }
+    }
+}
+
+/// LeRobot's cosine decay with linear warmup, evaluated at an absolute step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CosineWarmup {
+    pub peak_lr: f64,
+    pub decay_lr: f64,
+    pub warmup_steps: usize,
+    pub decay_steps: usize,
+}
+
+impl CosineWarmup {
+    /// The schedule for a run of `total_steps`; shorter runs than the decay horizon are rescaled as
+    /// LeRobot rescales them.
+    pub fn from_policy(cfg: &SmolVlaConfig, total_steps: usize) -> Self {
+        let (mut w, mut d) = (cfg.scheduler_warmup_steps, cfg.scheduler_decay_steps);
+        if total_steps < d {
+            w = (w as f64 * total_steps as f64 / d as f64) as usize;
+            d = total_steps;
+        }
+        Self { peak_lr: cfg.optimizer_lr, decay_lr: cfg.scheduler_decay_lr, warmup_steps: w, decay_steps: d.max(1) }
+    }
+
+    pub fn lr_at(&self, step: usize) -> f64 {
+        let w = self.warmup_steps as f64;
+        let factor = if step < self.warmup_steps {
+            if step == 0 {
+                1.0 / (w + 1.0)
+            } else {
+                (1.0 / (w + 1.0) - 1.0) * (1.0 - step as f64 / w) + 1.0
+            }
+        } else {
+            let s = step.min(self.decay_steps) as f64;
+            let cosine = 0.5 * (1.0 + (std::f64::consts::PI * s / self.decay_steps as f64).cos());
+            let alpha = self.decay_lr / self.peak_lr;
+            (1.0 - alpha) * cosine + alpha
+        };
+        self.peak_lr * factor
+    }
+}
+
+/// Figures of one optimizer step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepReport {
+    pub loss: f32,
+    pub grad_norm: f32,
+    pub lr: f64,
+}
+
+/// The trainable tensors as autodiff leaves plus AdamW moments, by LeRobot key.
+pub struct Trainer {
+    pub model: SmolVla,
+    trainable: BTreeMap<String, (Tensor<1>, Vec<usize>)>,
+    moments: BTreeMap<String, (Tensor<1>, Tensor<1>)>,
+    optimizer: AdamWConfig,
+    step: usize,
+    rng: StdRng,
+    device: Device,
+}
+
+impl Trainer {
+    /// Splits a checked checkpoint into the frozen store and the trainable leaves on `device`
+    /// (which must have autodiff enabled).
+    pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, device: &Device, seed: u64) -> Result<Self, PolicyError> {
+        let specs = cfg.param_specs();
+        check_keys(&specs, weights, "weights")?;
+        let trainable_names: std::collections::BTreeSet<&str> =
+            specs.iter().filter(|s| s.trainable).map(|s| s.name.as_str()).collect();
+        let frozen = ParamStore::upload(weights.iter().filter(|(k, _)| !trainable_names.contains(k.as_str())), device, false);
+        let trainable_store =
+            ParamStore::upload(weights.iter().filter(|(k, _)| trainable_names.contains(k.as_str())), device, true);
+        let model = SmolVla::new(cfg, &frozen, &trainable_store);
+        let trainable = trainable_store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
+        Ok(Self {
+            model,
+            trainable,
+            moments: BTreeMap::new(),
+            optimizer: AdamWConfig::from_policy(cfg),
+            step: 0,
+            rng: StdRng::seed_from_u64(seed),
+            device: device.clone(),
+        })
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    pub fn steps_taken(&self) -> usize {
+        self.step
+    }
+
+    /// The trainable tensors on the host: what the federation exchanges.
+    pub fn trainable_weights(&self) -> WeightMap {
+        ParamStore::from_flat(self.trainable.clone()).to_host()
+    }
+
+    /// Replaces the trainable tensors (e.g. with a new global model) and resets the optimizer.
+    pub fn set_trainable_weights(&mut self, weights: &WeightMap) -> Result<(), PolicyError> {
+        let expected: Vec<_> = self.model.cfg.param_specs().into_iter().filter(|s| s.trainable).collect();
+        check_keys(&expected, weights, "trainable update")?;
+        let store = ParamStore::upload(weights.iter(), &self.device, true);
+        self.trainable = store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
+        self.model = self.model.with_trainable(&store);
+        self.moments.clear();
+        self.step = 0;
+        Ok(())
+    }
+
+    /// Forward pass with given noise and time (no update).
+    pub fn forward(&self, batch: &Batch, noise: Tensor<3>, time: &[f32]) -> Result<FlowMatchingOutput, PolicyError> {
+        let obs = Prepared::new(&self.model.cfg, batch, &self.device)?;
+        let actions = batch.actions.as_ref().ok_or_else(|| PolicyError::Input("batch has no actions to train on".into()))?;
+        let actions = prepare_actions(&self.model.cfg, actions, &self.device);
+        Ok(self.model.forward_loss(&obs, actions, noise, time, batch.action_is_pad.as_deref(), None))
+    }
+
+    /// Seeded flow-matching noise `[B, T, max_action_dim]` and times `t = 0.999·Beta(1.5, 1) + 0.001`.
+    pub fn sample_noise_and_time(&mut self, batch: usize) -> (Tensor<3>, Vec<f32>) {
+        let cfg = &self.model.cfg;
+        let noise = gaussian_noise(&mut self.rng, [batch, cfg.chunk_size, cfg.max_action_dim], &self.device);
+        // Beta(α, 1) is U^(1/α).
+        let time = (0..batch).map(|_| self.rng.random::<f64>().powf(1.0 / 1.5) as f32 * 0.999 + 0.001).collect();
+        (noise, time)
+    }
+
+    /// One training step on `batch` with seeded noise and time, at learning rate `lr`.
+    pub fn train_step(&mut self, batch: &Batch, lr: f64) -> Result<StepReport, PolicyError> {
+        let (noise, time) = self.sample_noise_and_time(batch.batch_size());
+        self.train_step_with(batch, noise, &time, lr).map(|(report, _)| report)
+    }
+
+    /// One training step with given noise and time; also returns the gradients before clipping.
+    pub fn train_step_with(&mut self, batch: &Batch, noise: Tensor<3>, time: &[f32], lr: f64) -> Result<(StepReport, WeightMap), PolicyError> {
+        let out = self.forward(batch, noise, time)?;
+        let loss = out.loss.clone().into_scalar::<f32>();
+        if !loss.is_finite() {
+            return Err(PolicyError::Input(format!("training loss is {loss}; refusing to apply the update")));
+        }
+        let grads = out.loss.backward();
+        let grads: BTreeMap<String, Tensor<1>> = self
+            .trainable
+            .iter()
+            .filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g)))
+            .collect();
+        let raw_grads = grads
+            .iter()
+            .map(|(k, g)| (k.clone(), HostTensor::new(self.trainable[k].1.clone(), g.to_data().convert::<f32>().try_into_vec::<f32>().expect("f32"))))
+            .collect();
+        let grad_norm = grads.values().map(|g| g.clone().square().sum().into_scalar::<f64>()).sum::<f64>().sqrt();
+        let clip = (self.optimizer.grad_clip_norm / (grad_norm + 1e-6)).min(1.0);
+        self.apply_adamw(grads, clip, lr);
+        Ok((StepReport { loss, grad_norm: grad_norm as f32, lr }, raw_grads))
+    }
+
+    /// torch.optim.AdamW on every trainable tensor that received a gradient.
+    fn apply_adamw(&mut self, grads: BTreeMap<String, Tensor<1>>, clip: f64, lr: f64) {
+        self.step += 1;
+        let AdamWConfig { betas: (b1, b2), eps, weight_decay, .. } = self.optimizer;
+        let bias1 = 1.0 - b1.powi(self.step as i32);
+        let bias2_sqrt = (1.0 - b2.powi(self.step as i32)).sqrt();
+        for (name, grad) in grads {
+            let grad = if clip < 1.0 { grad * clip } else { grad };
+            let (leaf, shape) = self.trainable.remove(&name).expect("gradient of a trainable tensor");
+            let param = leaf.inner();
+            let (m, v) = self.moments.remove(&name).unwrap_or_else(|| (param.zeros_like(), param.zeros_like()));
+            let m = m * b1 + grad.clone() * (1.0 - b1);
+            let v = v * b2 + grad.square() * (1.0 - b2);
+            let param = param * (1.0 - lr * weight_decay);
+            let denom = v.clone().sqrt() / bias2_sqrt + eps;
+            let param = param - (m.clone() / denom) * (lr / bias1);
+            self.moments.insert(name.clone(), (m, v));
+            self.trainable.insert(name, (Tensor::from_inner(param).require_grad(), shape));
+        }
+        self.model = self.model.with_trainable(&ParamStore::from_flat(self.trainable.clone()));
+    }
+}

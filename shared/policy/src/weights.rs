@@ -1,0 +1,204 @@
+//! Weights by LeRobot key name: host-side tensors, safetensors in and out (F32/BF16/F16 converted
+//! on load), the check of a checkpoint against the configuration's tensor list, seeded random
+//! initialisation, and the on-device store the model's layers are built from.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand_distr::{Distribution, Normal};
+use safetensors::{Dtype, SafeTensors, serialize};
+
+use crate::config::ParamSpec;
+use crate::error::PolicyError;
+
+/// A tensor in host memory, row-major f32.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HostTensor {
+    pub shape: Vec<usize>,
+    pub data: Vec<f32>,
+}
+
+impl HostTensor {
+    pub fn new(shape: Vec<usize>, data: Vec<f32>) -> Self {
+        debug_assert_eq!(shape.iter().product::<usize>(), data.len());
+        Self { shape, data }
+    }
+
+    pub fn from_tensor<const D: usize>(t: Tensor<D>) -> Self {
+        let shape = t.dims().to_vec();
+        let data = t.into_data().convert::<f32>().try_into_vec::<f32>().expect("f32 tensor data");
+        Self { shape, data }
+    }
+
+    pub fn to_tensor<const D: usize>(&self, device: &Device) -> Tensor<D> {
+        Tensor::<1>::from_data(TensorData::new(self.data.clone(), [self.data.len()]), device).reshape(
+            <[usize; D]>::try_from(self.shape.as_slice()).expect("tensor rank matches the requested rank"),
+        )
+    }
+}
+
+/// Tensors by LeRobot key (`model.…`), sorted by name.
+pub type WeightMap = BTreeMap<String, HostTensor>;
+
+/// Keys LeRobot <= 0.3 stored inside model.safetensors for normalisation; the stats now live in the
+/// processor files, so these are ignored on load.
+const NORMALIZER_PREFIXES: [&str; 3] = ["normalize_inputs", "normalize_targets", "unnormalize_outputs"];
+
+/// Reads every tensor of a safetensors file, converting BF16/F16 to f32, stripping the
+/// `model._orig_mod.` prefix torch.compile leaves and dropping legacy normaliser buffers.
+pub fn read_safetensors(path: &Path) -> Result<WeightMap, PolicyError> {
+    let bytes = std::fs::read(path).map_err(|e| PolicyError::io(path, e))?;
+    let st = SafeTensors::deserialize(&bytes)
+        .map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
+    let mut out = WeightMap::new();
+    for (key, view) in st.tensors() {
+        if NORMALIZER_PREFIXES.iter().any(|p| key.starts_with(p)) {
+            continue;
+        }
+        let data = decode_floats(view.dtype(), view.data())
+            .ok_or_else(|| PolicyError::Dtype { path: path.into(), key: key.clone(), dtype: format!("{:?}", view.dtype()) })?;
+        let key = match key.strip_prefix("model._orig_mod.") {
+            Some(rest) => format!("model.{rest}"),
+            None => key,
+        };
+        out.insert(key, HostTensor::new(view.shape().to_vec(), data));
+    }
+    Ok(out)
+}
+
+/// Little-endian F32/BF16/F16 bytes to f32; None for any other dtype.
+pub fn decode_floats(dtype: Dtype, bytes: &[u8]) -> Option<Vec<f32>> {
+    let words = |n: usize| bytes.chunks_exact(n);
+    Some(match dtype {
+        Dtype::F32 => words(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+        Dtype::BF16 => words(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
+        Dtype::F16 => words(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
+        _ => return None,
+    })
+}
+
+/// Writes tensors as F32 safetensors (the dtype LeRobot's `save_pretrained` uses for fp32 models).
+/// Written to a temporary file and renamed, so a crash never leaves a half-written checkpoint.
+pub fn write_safetensors(path: &Path, tensors: &WeightMap) -> Result<(), PolicyError> {
+    let bytes = safetensors_bytes(tensors)?;
+    let tmp = path.with_extension("safetensors.partial");
+    std::fs::write(&tmp, bytes).map_err(|e| PolicyError::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| PolicyError::io(path, e))
+}
+
+/// Serialises tensors as F32 safetensors bytes.
+pub fn safetensors_bytes(tensors: &WeightMap) -> Result<Vec<u8>, PolicyError> {
+    let raw: Vec<(String, Vec<u8>, Vec<usize>)> = tensors
+        .iter()
+        .map(|(k, t)| (k.clone(), t.data.iter().flat_map(|x| x.to_le_bytes()).collect(), t.shape.clone()))
+        .collect();
+    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = raw
+        .iter()
+        .map(|(k, b, s)| {
+            let view = safetensors::tensor::TensorView::new(Dtype::F32, s.clone(), b).expect("consistent tensor view");
+            (k.clone(), view)
+        })
+        .collect();
+    serialize(views, None).map_err(|e| PolicyError::Safetensors { path: "<memory>".into(), message: e.to_string() })
+}
+
+/// Compares a checkpoint with the configuration's tensor list and reports, in one error, every
+/// missing key, unexpected key and shape mismatch.
+pub fn check_keys(specs: &[ParamSpec], weights: &WeightMap, source_name: &str) -> Result<(), PolicyError> {
+    let mut report = Vec::new();
+    for spec in specs {
+        match weights.get(&spec.name) {
+            None => report.push(format!("  missing key {} (expected shape {:?})", spec.name, spec.shape)),
+            Some(t) if t.shape != spec.shape => {
+                report.push(format!("  wrong shape for {}: file has {:?}, config expects {:?}", spec.name, t.shape, spec.shape))
+            }
+            Some(_) => {}
+        }
+    }
+    let known: std::collections::HashSet<&str> = specs.iter().map(|s| s.name.as_str()).collect();
+    for key in weights.keys().filter(|k| !known.contains(k.as_str())) {
+        report.push(format!("  unexpected key {key}"));
+    }
+    if report.is_empty() {
+        Ok(())
+    } else {
+        Err(PolicyError::KeyMismatch { source_name: source_name.into(), report: report.join("\n") })
+    }
+}
+
+/// Seeded initialisation in the spirit of transformers' `_init_weights`: N(0, 0.02) for matrices
+/// and embeddings, ones for norm scales, zeros for biases.
+pub fn init_random(specs: &[ParamSpec], seed: u64) -> WeightMap {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let normal = Normal::new(0.0f32, 0.02).expect("valid normal");
+    specs
+        .iter()
+        .map(|s| {
+            let n = s.numel();
+            let is_norm = s.name.contains("norm") && s.name.ends_with(".weight");
+            let data = if is_norm {
+                vec![1.0; n]
+            } else if s.name.ends_with(".bias") {
+                vec![0.0; n]
+            } else {
+                (0..n).map(|_| normal.sample(&mut rng)).collect()
+            };
+            (s.name.clone(), HostTensor::new(s.shape.clone(), data))
+        })
+        .collect()
+}
+
+/// Tensors on a device, by LeRobot key. Layers take their weights from here by name, so the
+/// checkpoint's own names are the only mapping there is.
+#[derive(Debug, Clone)]
+pub struct ParamStore {
+    tensors: BTreeMap<String, (Tensor<1>, Vec<usize>)>,
+}
+
+impl ParamStore {
+    /// Uploads the given tensors; `require_grad` marks them as autodiff leaves.
+    pub fn upload<'a>(
+        tensors: impl IntoIterator<Item = (&'a String, &'a HostTensor)>,
+        device: &Device,
+        require_grad: bool,
+    ) -> Self {
+        let tensors = tensors
+            .into_iter()
+            .map(|(k, t)| {
+                let flat = Tensor::<1>::from_data(TensorData::new(t.data.clone(), [t.data.len()]), device);
+                let flat = if require_grad { flat.require_grad() } else { flat };
+                (k.clone(), (flat, t.shape.clone()))
+            })
+            .collect();
+        Self { tensors }
+    }
+
+    pub fn from_flat(tensors: BTreeMap<String, (Tensor<1>, Vec<usize>)>) -> Self {
+        Self { tensors }
+    }
+
+    /// The tensor `name` in its checkpoint shape. Panics on an unknown name: every name asked for
+    /// comes from `SmolVlaConfig::param_specs`, which the loader has already checked against.
+    pub fn get<const D: usize>(&self, name: &str) -> Tensor<D> {
+        let (flat, shape) = self.tensors.get(name).unwrap_or_else(|| panic!("parameter {name} not in store"));
+        let dims: [usize; D] = shape.as_slice().try_into().unwrap_or_else(|_| panic!("parameter {name} has rank {}", shape.len()));
+        flat.clone().reshape(dims)
+    }
+
+    pub fn flat(&self) -> impl Iterator<Item = (&String, &Tensor<1>, &Vec<usize>)> {
+        self.tensors.iter().map(|(k, (t, s))| (k, t, s))
+    }
+
+    pub fn to_host(&self) -> WeightMap {
+        self.tensors
+            .iter()
+            .map(|(k, (t, s))| {
+                let data = t.to_data().convert::<f32>().try_into_vec::<f32>().expect("f32 tensor data");
+                (k.clone(), HostTensor::new(s.clone(), data))
+            })
+            .collect()
+    }
+}

@@ -10,10 +10,9 @@ use std::path::Path;
 
 use burn::tensor::{Device, Tensor};
 use safetensors::{Dtype, SafeTensors};
-use serde_json::Value;
 
 use crate::batch::{Batch, Prepared, pad_last_dim, prepare_image};
-use crate::config::{SmolVlaConfig, VlmConfig};
+use crate::config::SmolVlaConfig;
 use crate::error::PolicyError;
 use crate::normalize::FeatureStats;
 use crate::smolvla::{SmolVla, time_embedding};
@@ -102,31 +101,6 @@ impl ParityReport {
     }
 }
 
-fn read_json(path: &Path) -> Result<Value, PolicyError> {
-    let text = std::fs::read_to_string(path).map_err(|e| PolicyError::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.into(), source: e })
-}
-
-/// Reads a LeRobot SmolVLA config.json and the backbone config its `vlm_model_name` points to
-/// (resolved relative to `dir`, as LeRobot resolves it from the working directory).
-pub fn read_policy_config(dir: &Path) -> Result<SmolVlaConfig, PolicyError> {
-    let policy = read_json(&dir.join("config.json"))?;
-    let vlm_name = policy.get("vlm_model_name").and_then(Value::as_str).unwrap_or("vlm");
-    let vlm_path = [dir.join(vlm_name).join("config.json"), dir.join("vlm").join("config.json")]
-        .into_iter()
-        .find(|p| p.exists())
-        .ok_or_else(|| {
-            PolicyError::Config(format!(
-                "{}: the backbone config for vlm_model_name {vlm_name:?} is not available locally (expected {}/config.json)",
-                dir.display(),
-                dir.join(vlm_name).display()
-            ))
-        })?;
-    let vlm: VlmConfig = serde_json::from_value(read_json(&vlm_path)?)
-        .map_err(|e| PolicyError::Json { path: vlm_path.clone(), source: e })?;
-    SmolVlaConfig::from_lerobot_json(&policy, vlm)
-}
-
 fn input<'a>(inputs: &'a BTreeMap<String, AnyTensor>, key: &str) -> Result<&'a AnyTensor, PolicyError> {
     inputs.get(key).ok_or_else(|| PolicyError::Input(format!("fixture inputs.safetensors has no {key:?}")))
 }
@@ -154,7 +128,7 @@ pub fn fixture_batch(cfg: &SmolVlaConfig, inputs: &BTreeMap<String, AnyTensor>) 
 /// Recomputes every tensor of `outputs.safetensors` in fixture `dir` on `device` (which must have
 /// autodiff enabled) and compares.
 pub fn run(dir: &Path, device: &Device, tolerance: f64) -> Result<ParityReport, PolicyError> {
-    let cfg = read_policy_config(dir)?;
+    let cfg = crate::policy_dir::read_config(dir)?;
     let weights = read_safetensors(&dir.join("model.safetensors"))?;
     crate::weights::check_keys(&cfg.param_specs(), &weights, &dir.join("model.safetensors").display().to_string())?;
     let inputs = read_any(&dir.join("inputs.safetensors"))?;

@@ -1,4 +1,14 @@
-//! Token ids the exported backbone config names (SmolVLM2's layout of special tokens).
+//! Language tokens for the embedded default: a word-level tokenizer built from the task strings,
+//! written as a Hugging Face `tokenizer.json` (WordLevel model, Whitespace pre-tokenizer) so that
+//! LeRobot's tokenizer step loads the very same vocabulary from an exported policy's `vlm/` folder.
+//! Special tokens sit at SmolVLM2's ids; padding is on the right with `<|im_end|>`, as LeRobot pads.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde_json::{Value, json};
+
+use crate::error::PolicyError;
 
 /// `<|im_start|>`
 pub const BOS_ID: i64 = 1;
@@ -6,3 +16,143 @@ pub const BOS_ID: i64 = 1;
 pub const PAD_ID: i64 = 2;
 /// `<image>` (SmolVLA never feeds it; the backbone config names it).
 pub const IMAGE_ID: i64 = 3;
+const UNK_ID: i64 = 0;
+const SPECIAL: [&str; 7] =
+    ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<image>", "<fake_token_around_image>", "<global-img>", "<end_of_utterance>"];
+
+/// Word-level vocabulary: special tokens first, then words in first-seen order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WordTokenizer {
+    vocab: BTreeMap<String, i64>,
+}
+
+/// Whitespace pre-tokenisation as `tokenizers`' `Whitespace` does it: runs of word characters and
+/// runs of other non-space characters; the text is lower-cased first.
+fn words(text: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut current = String::new();
+    let mut current_is_word = false;
+    for c in text.to_lowercase().chars() {
+        if c.is_whitespace() {
+            if !current.is_empty() {
+                out.push(std::mem::take(&mut current));
+            }
+            continue;
+        }
+        let is_word = c.is_alphanumeric() || c == '_';
+        if !current.is_empty() && is_word != current_is_word {
+            out.push(std::mem::take(&mut current));
+        }
+        current_is_word = is_word;
+        current.push(c);
+    }
+    if !current.is_empty() {
+        out.push(current);
+    }
+    out
+}
+
+impl WordTokenizer {
+    pub fn from_texts<'a>(texts: impl IntoIterator<Item = &'a str>) -> Self {
+        let mut vocab: BTreeMap<String, i64> = SPECIAL.iter().enumerate().map(|(i, s)| (s.to_string(), i as i64)).collect();
+        for text in texts {
+            for w in words(text) {
+                let next = vocab.len() as i64;
+                vocab.entry(w).or_insert(next);
+            }
+        }
+        Self { vocab }
+    }
+
+    pub fn vocab_size(&self) -> usize {
+        self.vocab.len()
+    }
+
+    /// Token ids and attention mask of a batch of task strings, as LeRobot's pre-processor makes
+    /// them: "\n" appended, truncated to `max_length`, right-padded to the longest row
+    /// (`pad_to_max = false`) or to `max_length`.
+    pub fn encode_batch(&self, tasks: &[&str], max_length: usize, pad_to_max: bool) -> (Vec<i64>, Vec<bool>, usize) {
+        let rows: Vec<Vec<i64>> = tasks
+            .iter()
+            .map(|t| {
+                let mut ids: Vec<i64> = words(&format!("{t}\n")).iter().map(|w| *self.vocab.get(w).unwrap_or(&UNK_ID)).collect();
+                ids.truncate(max_length);
+                ids
+            })
+            .collect();
+        let len = if pad_to_max { max_length } else { rows.iter().map(Vec::len).max().unwrap_or(0).max(1) };
+        let mut ids = Vec::with_capacity(rows.len() * len);
+        let mut mask = Vec::with_capacity(rows.len() * len);
+        for row in rows {
+            mask.extend((0..len).map(|i| i < row.len()));
+            ids.extend(row.iter().copied().chain(std::iter::repeat(PAD_ID)).take(len));
+        }
+        (ids, mask, len)
+    }
+
+    /// The Hugging Face `tokenizer.json` of this vocabulary.
+    pub fn to_json(&self) -> Value {
+        let added: Vec<Value> = SPECIAL
+            .iter()
+            .enumerate()
+            .map(|(i, s)| json!({"id": i, "content": s, "single_word": false, "lstrip": false, "rstrip": false, "normalized": false, "special": true}))
+            .collect();
+        json!({
+            "version": "1.0",
+            "truncation": null,
+            "padding": null,
+            "added_tokens": added,
+            "normalizer": {"type": "Lowercase"},
+            "pre_tokenizer": {"type": "Whitespace"},
+            "post_processor": null,
+            "decoder": null,
+            "model": {"type": "WordLevel", "vocab": self.vocab, "unk_token": SPECIAL[UNK_ID as usize]}
+        })
+    }
+
+    /// `tokenizer_config.json` naming the special tokens as SmolVLM2's does.
+    pub fn tokenizer_config() -> Value {
+        json!({
+            "bos_token": SPECIAL[1], "eos_token": SPECIAL[6], "pad_token": SPECIAL[2], "unk_token": SPECIAL[0],
+            "model_max_length": 8192, "tokenizer_class": "PreTrainedTokenizerFast"
+        })
+    }
+
+    /// Reads a WordLevel `tokenizer.json` written by [`WordTokenizer::to_json`].
+    pub fn read(path: &Path) -> Result<Self, PolicyError> {
+        let text = std::fs::read_to_string(path).map_err(|e| PolicyError::io(path, e))?;
+        let json: Value = serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.into(), source: e })?;
+        let model = &json["model"];
+        if model["type"] != "WordLevel" {
+            return Err(PolicyError::Tokenizer(format!(
+                "{}: model type {} is not WordLevel; tokenise with the checkpoint's own tokenizer and pass token ids",
+                path.display(),
+                model["type"]
+            )));
+        }
+        let vocab = model["vocab"]
+            .as_object()
+            .ok_or_else(|| PolicyError::Tokenizer(format!("{}: model.vocab is not an object", path.display())))?
+            .iter()
+            .map(|(k, v)| (k.clone(), v.as_i64().unwrap_or(UNK_ID)))
+            .collect();
+        Ok(Self { vocab })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn encodes_like_lerobot_pads_right_with_im_end() {
+        let tok = WordTokenizer::from_texts(["Put the cube in the bowl", "stack"]);
+        let (ids, mask, len) = tok.encode_batch(&["put the cube in the bowl", "stack!"], 48, false);
+        assert_eq!(len, 6);
+        assert_eq!(&ids[..6], &[7, 8, 9, 10, 8, 11]);
+        assert_eq!(&ids[6..], &[12, UNK_ID, PAD_ID, PAD_ID, PAD_ID, PAD_ID]);
+        assert_eq!(&mask[6..], &[true, true, false, false, false, false]);
+        let (_, _, len) = tok.encode_batch(&["stack"], 48, true);
+        assert_eq!(len, 48);
+    }
+}

@@ -85,6 +85,7 @@ pub struct StepReport {
 /// The trainable tensors as autodiff leaves plus AdamW moments, by LeRobot key.
 pub struct Trainer {
     pub model: SmolVla,
+    frozen: ParamStore,
     trainable: BTreeMap<String, (Tensor<1>, Vec<usize>)>,
     moments: BTreeMap<String, (Tensor<1>, Tensor<1>)>,
     optimizer: AdamWConfig,
@@ -108,6 +109,7 @@ impl Trainer {
         let trainable = trainable_store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
         Ok(Self {
             model,
+            frozen,
             trainable,
             moments: BTreeMap::new(),
             optimizer: AdamWConfig::from_policy(cfg),
@@ -128,6 +130,11 @@ impl Trainer {
     /// The trainable tensors on the host: what the federation exchanges.
     pub fn trainable_weights(&self) -> WeightMap {
         ParamStore::from_flat(self.trainable.clone()).to_host()
+    }
+
+    /// The frozen tensors on the host (they never change; exported with every checkpoint).
+    pub fn frozen_weights(&self) -> WeightMap {
+        self.frozen.to_host()
     }
 
     /// Replaces the trainable tensors (e.g. with a new global model) and resets the optimizer.

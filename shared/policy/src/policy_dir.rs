@@ -1,0 +1,157 @@
+//! LeRobot policy directories in and out: `config.json` + `model.safetensors` + the processor
+//! pipeline files with their statistics, and (for sizes other than smolvla_base) a `vlm/` folder
+//! with the backbone config and tokenizer, so LeRobot can load the policy with no Hub access.
+
+use std::path::{Path, PathBuf};
+
+use serde_json::{Value, json};
+
+use crate::config::{SmolVlaConfig, VlmConfig};
+use crate::error::PolicyError;
+use crate::normalize::NormStats;
+use crate::tokenizer::WordTokenizer;
+use crate::weights::{WeightMap, check_keys, read_safetensors, write_safetensors};
+
+/// A policy read from disk.
+#[derive(Debug, Clone)]
+pub struct PolicyDir {
+    pub cfg: SmolVlaConfig,
+    pub weights: WeightMap,
+    pub stats: Option<NormStats>,
+    /// The backbone folder (config + tokenizer) when one is available locally.
+    pub vlm_dir: Option<PathBuf>,
+}
+
+fn read_json(path: &Path) -> Result<Value, PolicyError> {
+    let text = std::fs::read_to_string(path).map_err(|e| PolicyError::io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.into(), source: e })
+}
+
+/// The local backbone folder of a policy: `vlm_model_name` relative to the policy directory (as
+/// LeRobot resolves it from its working directory), or a `vlm/` folder beside the weights.
+pub fn find_vlm_dir(dir: &Path, vlm_model_name: &str) -> Option<PathBuf> {
+    [dir.join(vlm_model_name), dir.join("vlm")].into_iter().find(|p| p.join("config.json").exists())
+}
+
+/// Reads a LeRobot SmolVLA `config.json` and the backbone config its `vlm_model_name` names.
+/// The full `smolvla_base` backbone is known without its folder.
+pub fn read_config(dir: &Path) -> Result<SmolVlaConfig, PolicyError> {
+    let policy = read_json(&dir.join("config.json"))?;
+    let vlm_name = policy.get("vlm_model_name").and_then(Value::as_str).unwrap_or("vlm");
+    let vlm = match find_vlm_dir(dir, vlm_name) {
+        Some(vlm_dir) => {
+            let path = vlm_dir.join("config.json");
+            serde_json::from_value::<VlmConfig>(read_json(&path)?).map_err(|e| PolicyError::Json { path, source: e })?
+        }
+        None if vlm_name == SmolVlaConfig::base().vlm_model_name => SmolVlaConfig::base().vlm,
+        None => {
+            return Err(PolicyError::Config(format!(
+                "{}: the backbone {vlm_name:?} named by config.json is not available locally (expected {}/config.json)",
+                dir.display(),
+                dir.join(vlm_name).display()
+            )));
+        }
+    };
+    SmolVlaConfig::from_lerobot_json(&policy, vlm)
+}
+
+impl PolicyDir {
+    /// Loads config, weights (checked key by key against the config) and statistics.
+    pub fn load(dir: &Path) -> Result<Self, PolicyError> {
+        let cfg = read_config(dir)?;
+        let model_path = dir.join("model.safetensors");
+        let weights = read_safetensors(&model_path)?;
+        check_keys(&cfg.param_specs(), &weights, &model_path.display().to_string())?;
+        let stats = NormStats::read_policy_dir(dir)?;
+        let vlm_dir = find_vlm_dir(dir, &cfg.vlm_model_name);
+        Ok(Self { cfg, weights, stats, vlm_dir })
+    }
+
+    /// The tokenizer of this policy's backbone folder, when it is one this crate reads natively.
+    pub fn tokenizer(&self) -> Result<Option<WordTokenizer>, PolicyError> {
+        match &self.vlm_dir {
+            Some(d) if d.join("tokenizer.json").exists() => WordTokenizer::read(&d.join("tokenizer.json")).map(Some),
+            _ => Ok(None),
+        }
+    }
+}
+
+/// Writes a LeRobot-loadable policy directory. Every file goes through a temporary name and a
+/// rename, so an interrupted export never leaves a half-written checkpoint behind.
+pub fn export(
+    dir: &Path,
+    cfg: &SmolVlaConfig,
+    weights: &WeightMap,
+    stats: &NormStats,
+    tokenizer: Option<&WordTokenizer>,
+) -> Result<(), PolicyError> {
+    check_keys(&cfg.param_specs(), weights, "export")?;
+    std::fs::create_dir_all(dir).map_err(|e| PolicyError::io(dir, e))?;
+    let mut cfg = cfg.clone();
+    if let Some(tok) = tokenizer {
+        // A backbone that is not on the Hub travels with the policy as `vlm/`.
+        cfg.vlm_model_name = "vlm".into();
+        let vlm = dir.join("vlm");
+        std::fs::create_dir_all(&vlm).map_err(|e| PolicyError::io(&vlm, e))?;
+        write_json(&vlm.join("config.json"), &cfg.vlm_config_json())?;
+        write_json(&vlm.join("tokenizer.json"), &tok.to_json())?;
+        write_json(&vlm.join("tokenizer_config.json"), &WordTokenizer::tokenizer_config())?;
+        write_json(&vlm.join("processor_config.json"), &processor_config(&cfg))?;
+    }
+    write_json(&dir.join("config.json"), &cfg.to_lerobot_json())?;
+    write_safetensors(&dir.join("model.safetensors"), weights)?;
+    stats.write_policy_dir(dir, &cfg)
+}
+
+fn write_json(path: &Path, value: &Value) -> Result<(), PolicyError> {
+    let tmp = path.with_extension("json.partial");
+    std::fs::write(&tmp, serde_json::to_string_pretty(value).expect("serialisable JSON")).map_err(|e| PolicyError::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| PolicyError::io(path, e))
+}
+
+/// SmolVLMProcessor settings transformers needs to build the processor of a local backbone.
+fn processor_config(cfg: &SmolVlaConfig) -> Value {
+    let size = cfg.vlm.vision_config.image_size;
+    let image = json!({
+        "do_convert_rgb": true, "do_image_splitting": false, "do_normalize": true, "do_pad": true,
+        "do_rescale": true, "do_resize": true, "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5],
+        "image_processor_type": "SmolVLMImageProcessor", "max_image_size": {"longest_edge": size},
+        "resample": 1, "rescale_factor": 1.0 / 255.0, "size": {"longest_edge": size}
+    });
+    json!({"image_processor": image, "image_seq_len": cfg.tokens_per_image(), "processor_class": "SmolVLMProcessor"})
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::normalize::FeatureStats;
+    use crate::weights::init_random;
+
+    fn stats() -> NormStats {
+        let mut s = NormStats::default();
+        for f in ["observation.state", "action"] {
+            s.features.insert(f.into(), FeatureStats { mean: vec![0.5; 6], std: vec![2.0; 6] });
+        }
+        s
+    }
+
+    #[test]
+    fn export_then_load_round_trips_every_tensor_bit_exactly() {
+        let dir = std::env::temp_dir().join(format!("fedvla-export-{}", std::process::id()));
+        let cfg = SmolVlaConfig::tiny();
+        let weights = init_random(&cfg.param_specs(), 7);
+        let tok = WordTokenizer::from_texts(["put the cube in the bowl"]);
+        export(&dir, &cfg, &weights, &stats(), Some(&tok)).unwrap();
+        let loaded = PolicyDir::load(&dir).unwrap();
+        assert_eq!(loaded.weights.len(), weights.len());
+        for (k, t) in &weights {
+            let l = &loaded.weights[k];
+            assert_eq!(l.shape, t.shape, "{k}");
+            assert!(l.data.iter().zip(&t.data).all(|(a, b)| a.to_bits() == b.to_bits()), "{k} changed");
+        }
+        assert_eq!(loaded.stats, Some(stats()));
+        assert_eq!(loaded.cfg.param_specs(), cfg.param_specs());
+        assert_eq!(loaded.tokenizer().unwrap().unwrap(), tok);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,277 @@
+//! The simulated world: a table, the SO-100 arm driven by its servos, a cube and a bowl, in
+//! rapier3d. One [`Scene::step`] is one 1/30 s control step (LeRobot SO-100 data is 30 fps)
+//! made of several physics substeps.
+//!
+//! The arm links are kinematic bodies posed by forward kinematics of the servo positions: the
+//! real arm is position-controlled and its servos hold a pose against the light loads of this
+//! task, so the servo model (speed limit, gripper stall) decides where the links are and the
+//! physics decides what the cube does. The cube is a dynamic body held by friction alone.
+
+use crate::arm::{self, GRIPPER, JAW_LINK, JOINT_COUNT, LINK_COUNT};
+use crate::servo::{ARM_MAX_SPEED, GRIPPER_MAX_SPEED, Servo};
+use crate::shape::{Part, Rgb};
+use crate::task::{self, BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, Layout};
+use rapier3d::math::{Pose, Rot3, Vec3};
+use rapier3d::prelude::{
+    ColliderHandle, PhysicsWorld, RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
+};
+use std::f32::consts::FRAC_PI_2;
+
+/// Control rate, frames per second.
+pub const FPS: u32 = 30;
+/// Physics substeps per control step (240 Hz physics keeps the grasp contacts stiff).
+pub const SUBSTEPS: u32 = 8;
+/// How far the closing jaw presses into the cube before the gripper servo stalls, metres:
+/// the servo's torque limit and the compliance of its position loop, which together set the
+/// grip force.
+pub const GRIP_SQUEEZE: f32 = 0.0015;
+/// Jaw angle above which the gripper counts as released, radians (opening past the cube).
+pub const GRIPPER_RELEASED: f32 = 0.3;
+
+/// Starting pose of the arm, radians: the published model's "home" keyframe (upper arm up,
+/// forearm forward, gripper pointing down), jaw slightly open.
+pub const HOME: [f32; JOINT_COUNT] = [0.0, -FRAC_PI_2, FRAC_PI_2, FRAC_PI_2, -FRAC_PI_2, 0.0];
+
+const TABLE_COLOR: Rgb = [0.78, 0.72, 0.62];
+const CUBE_COLOR: Rgb = [0.85, 0.08, 0.08];
+const BOWL_COLOR: Rgb = [0.2, 0.45, 0.85];
+/// Segments of the bowl's wall.
+const BOWL_SEGMENTS: usize = 16;
+const BOWL_WALL: f32 = 0.004;
+/// Table top half extents (x, y), metres; the top surface is z = 0.
+const TABLE_HALF: [f32; 2] = [0.45, 0.35];
+const TABLE_CENTER_Y: f32 = -0.15;
+
+/// A body with the primitives that make it up, for rendering.
+#[derive(Clone, Debug)]
+pub struct Visual {
+    pub body: RigidBodyHandle,
+    pub parts: Vec<Part>,
+}
+
+/// The whole simulated scene for one episode.
+pub struct Scene {
+    world: PhysicsWorld,
+    layout: Layout,
+    base: Pose,
+    links: [RigidBodyHandle; LINK_COUNT],
+    arm_colliders: Vec<ColliderHandle>,
+    jaw_colliders: Vec<ColliderHandle>,
+    cube: RigidBodyHandle,
+    cube_collider: ColliderHandle,
+    servos: [Servo; JOINT_COUNT],
+    visuals: Vec<Visual>,
+    frame: u32,
+}
+
+impl Scene {
+    /// A new episode with cube and bowl placed from `seed`, the arm at [`HOME`].
+    pub fn new(seed: u64) -> Self {
+        let layout = Layout::from_seed(seed);
+        let mut world = PhysicsWorld::new();
+        world.gravity = Vec3::new(0.0, 0.0, -9.81);
+        world.integration_parameters.dt = 1.0 / (FPS * SUBSTEPS) as f32;
+        let mut visuals = Vec::new();
+
+        let table_parts = vec![Part::cuboid(
+            Vec3::new(0.0, TABLE_CENTER_Y, -0.02),
+            Vec3::new(TABLE_HALF[0], TABLE_HALF[1], 0.02),
+            TABLE_COLOR,
+        )];
+        add_body(&mut world, &mut visuals, RigidBodyBuilder::fixed(), table_parts, 0.6);
+        add_body(
+            &mut world,
+            &mut visuals,
+            RigidBodyBuilder::fixed().translation(layout.bowl_position),
+            bowl_parts(),
+            0.6,
+        );
+        let cube_parts = vec![Part::cuboid(Vec3::ZERO, Vec3::splat(CUBE_HALF), CUBE_COLOR)];
+        let cube_body = RigidBodyBuilder::dynamic()
+            .translation(layout.cube_position)
+            .rotation(Vec3::new(0.0, 0.0, layout.cube_yaw));
+        let (cube, cube_colliders) = add_body(&mut world, &mut visuals, cube_body, cube_parts, 1.0);
+
+        let base = Pose::IDENTITY;
+        let link_poses = arm::forward_kinematics(base, &HOME);
+        let mut arm_colliders = Vec::new();
+        let mut jaw_colliders = Vec::new();
+        let links = {
+            let parts = arm::link_parts();
+            let mut handles = Vec::with_capacity(LINK_COUNT);
+            for (i, parts) in parts.into_iter().enumerate() {
+                let builder = if i == 0 {
+                    RigidBodyBuilder::fixed()
+                } else {
+                    RigidBodyBuilder::kinematic_position_based()
+                }
+                .pose(link_poses[i])
+                .additional_mass(arm::LINKS[i].mass);
+                let (handle, colliders) = add_body(&mut world, &mut visuals, builder, parts, 1.0);
+                if i == JAW_LINK {
+                    jaw_colliders.extend(&colliders);
+                }
+                arm_colliders.extend(colliders);
+                handles.push(handle);
+            }
+            <[RigidBodyHandle; LINK_COUNT]>::try_from(handles).expect("one body per link")
+        };
+        let servos = std::array::from_fn(|i| {
+            Servo::new(HOME[i], if i == GRIPPER { GRIPPER_MAX_SPEED } else { ARM_MAX_SPEED })
+        });
+        Self {
+            world,
+            layout,
+            base,
+            links,
+            arm_colliders,
+            jaw_colliders,
+            cube,
+            cube_collider: cube_colliders[0],
+            servos,
+            visuals,
+            frame: 0,
+        }
+    }
+
+    /// Advances one control step (1/30 s) towards the goal positions `action`, in robot units
+    /// (degrees for the five arm joints, 0..100 for the gripper). Goals outside the joint
+    /// limits are clamped to them, as the servo firmware does.
+    pub fn step(&mut self, action: [f32; JOINT_COUNT]) {
+        let goal = arm::clamp_to_limits(&arm::from_robot_units(&action));
+        for (servo, goal) in self.servos.iter_mut().zip(goal) {
+            servo.goal = goal;
+        }
+        let dt = self.world.integration_parameters.dt;
+        for _ in 0..SUBSTEPS {
+            let jaw_stall = (self.jaw_penetration() > GRIP_SQUEEZE).then_some(-1.0);
+            for (i, servo) in self.servos.iter_mut().enumerate() {
+                servo.advance(dt, if i == GRIPPER { jaw_stall } else { None });
+            }
+            let poses = arm::forward_kinematics(self.base, &self.joint_positions());
+            for (handle, pose) in self.links.iter().zip(poses).skip(1) {
+                self.world.bodies[*handle].set_next_kinematic_position(pose);
+            }
+            self.world.step();
+        }
+        self.frame += 1;
+    }
+
+    /// Measured joint positions in robot units (degrees, gripper 0..100): `observation.state`.
+    pub fn state(&self) -> [f32; JOINT_COUNT] {
+        arm::to_robot_units(&self.joint_positions())
+    }
+
+    /// Measured joint positions, radians.
+    pub fn joint_positions(&self) -> [f32; JOINT_COUNT] {
+        self.servos.map(|servo| servo.position)
+    }
+
+    /// Whether the task is done: the cube rests in the bowl (centre within
+    /// [`task::SUCCESS_RADIUS`] horizontally of the bowl centre and below
+    /// [`task::SUCCESS_MAX_HEIGHT`]), the gripper has let go and no part of the arm touches it.
+    pub fn success(&self) -> bool {
+        let cube = self.cube_pose().translation;
+        let offset = (cube - self.layout.bowl_position).truncate().length();
+        offset < task::SUCCESS_RADIUS
+            && cube.z < task::SUCCESS_MAX_HEIGHT
+            && self.servos[GRIPPER].position > GRIPPER_RELEASED
+            && !self.arm_touches_cube()
+    }
+
+    /// Control steps taken since the episode started.
+    pub fn frame(&self) -> u32 {
+        self.frame
+    }
+
+    /// Initial placement of cube and bowl.
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// Pose of the arm's base on the table.
+    pub fn base_pose(&self) -> Pose {
+        self.base
+    }
+
+    /// Current pose of the cube (centre), world frame, metres.
+    pub fn cube_pose(&self) -> Pose {
+        *self.world.bodies[self.cube].position()
+    }
+
+    /// Current pose of arm link `index` (see [`arm::LINKS`]), world frame.
+    pub fn link_pose(&self, index: usize) -> Pose {
+        *self.world.bodies[self.links[index]].position()
+    }
+
+    /// Everything to draw, with each body's current pose.
+    pub fn visuals(&self) -> impl Iterator<Item = (Pose, &[Part])> {
+        self.visuals.iter().map(|visual| (*self.world.bodies[visual.body].position(), visual.parts.as_slice()))
+    }
+
+    /// Whether any arm collider is in contact with the cube.
+    pub fn arm_touches_cube(&self) -> bool {
+        self.arm_colliders.iter().any(|&collider| {
+            self.world
+                .narrow_phase
+                .contact_pair(collider, self.cube_collider)
+                .is_some_and(|pair| pair.has_any_active_contact())
+        })
+    }
+
+    /// Deepest penetration of the moving jaw into the cube, metres (0 when apart).
+    fn jaw_penetration(&self) -> f32 {
+        self.jaw_colliders
+            .iter()
+            .filter_map(|&collider| self.world.narrow_phase.contact_pair(collider, self.cube_collider))
+            .filter_map(|pair| pair.find_deepest_contact())
+            .map(|(_, contact)| -contact.dist)
+            .fold(0.0, f32::max)
+    }
+}
+
+/// Inserts a body and one collider per part; returns the body and its colliders.
+fn add_body(
+    world: &mut PhysicsWorld,
+    visuals: &mut Vec<Visual>,
+    builder: RigidBodyBuilder,
+    parts: Vec<Part>,
+    friction: f32,
+) -> (RigidBodyHandle, Vec<ColliderHandle>) {
+    let body = builder.build();
+    let is_dynamic = body.body_type() == RigidBodyType::Dynamic;
+    let handle = world.bodies.insert(body);
+    let colliders = parts
+        .iter()
+        .map(|part| {
+            // Wood-like density for the cube; other bodies are fixed or kinematic.
+            let collider = part.collider().friction(friction).density(if is_dynamic { 600.0 } else { 0.0 });
+            world.colliders.insert_with_parent(collider, handle, &mut world.bodies)
+        })
+        .collect();
+    visuals.push(Visual { body: handle, parts });
+    (handle, colliders)
+}
+
+/// The bowl: a round floor and a wall of flat segments, centred on the body origin.
+fn bowl_parts() -> Vec<Part> {
+    let outer = BOWL_INNER_RADIUS + BOWL_WALL;
+    // Rapier cylinders stand along local y; turn it to stand along z.
+    let upright = Rot3::from_rotation_x(FRAC_PI_2);
+    let mut parts =
+        vec![Part::cylinder(Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5), upright, BOWL_FLOOR * 0.5, outer, BOWL_COLOR)];
+    let segment_half_length = outer * (std::f32::consts::PI / BOWL_SEGMENTS as f32).tan();
+    for k in 0..BOWL_SEGMENTS {
+        let angle = k as f32 * std::f32::consts::TAU / BOWL_SEGMENTS as f32;
+        let radial = BOWL_INNER_RADIUS + BOWL_WALL * 0.5;
+        let center = Vec3::new(angle.cos() * radial, angle.sin() * radial, BOWL_HEIGHT * 0.5);
+        let mut wall = Part::cuboid(
+            Vec3::ZERO,
+            Vec3::new(BOWL_WALL * 0.5, segment_half_length, BOWL_HEIGHT * 0.5),
+            BOWL_COLOR,
+        );
+        wall.local = Pose::from_parts(center, Rot3::from_rotation_z(angle));
+        parts.push(wall);
+    }
+    parts
+}

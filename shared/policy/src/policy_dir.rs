@@ -76,27 +76,47 @@ impl PolicyDir {
     }
 }
 
+/// Where an exported policy's backbone (config + tokenizer) comes from.
+#[derive(Debug, Clone, Copy)]
+pub enum Backbone<'a> {
+    /// `vlm_model_name` names a backbone LeRobot can already resolve (e.g. the Hub id).
+    Named,
+    /// Write a `vlm/` folder for this configuration with the given word-level tokenizer.
+    Generated(&'a WordTokenizer),
+    /// Copy an existing local backbone folder to `vlm/`.
+    CopyFrom(&'a Path),
+}
+
 /// Writes a LeRobot-loadable policy directory. Every file goes through a temporary name and a
 /// rename, so an interrupted export never leaves a half-written checkpoint behind.
-pub fn export(
-    dir: &Path,
-    cfg: &SmolVlaConfig,
-    weights: &WeightMap,
-    stats: &NormStats,
-    tokenizer: Option<&WordTokenizer>,
-) -> Result<(), PolicyError> {
+pub fn export(dir: &Path, cfg: &SmolVlaConfig, weights: &WeightMap, stats: &NormStats, backbone: Backbone<'_>) -> Result<(), PolicyError> {
     check_keys(&cfg.param_specs(), weights, "export")?;
     std::fs::create_dir_all(dir).map_err(|e| PolicyError::io(dir, e))?;
     let mut cfg = cfg.clone();
-    if let Some(tok) = tokenizer {
-        // A backbone that is not on the Hub travels with the policy as `vlm/`.
-        cfg.vlm_model_name = "vlm".into();
-        let vlm = dir.join("vlm");
-        std::fs::create_dir_all(&vlm).map_err(|e| PolicyError::io(&vlm, e))?;
-        write_json(&vlm.join("config.json"), &cfg.vlm_config_json())?;
-        write_json(&vlm.join("tokenizer.json"), &tok.to_json())?;
-        write_json(&vlm.join("tokenizer_config.json"), &WordTokenizer::tokenizer_config())?;
-        write_json(&vlm.join("processor_config.json"), &processor_config(&cfg))?;
+    let vlm = dir.join("vlm");
+    match backbone {
+        Backbone::Named => {}
+        Backbone::Generated(tok) => {
+            // A backbone that is not on the Hub travels with the policy as `vlm/`.
+            cfg.vlm_model_name = "vlm".into();
+            std::fs::create_dir_all(&vlm).map_err(|e| PolicyError::io(&vlm, e))?;
+            write_json(&vlm.join("config.json"), &cfg.vlm_config_json())?;
+            write_json(&vlm.join("tokenizer.json"), &tok.to_json())?;
+            write_json(&vlm.join("tokenizer_config.json"), &WordTokenizer::tokenizer_config())?;
+            write_json(&vlm.join("processor_config.json"), &processor_config(&cfg))?;
+        }
+        Backbone::CopyFrom(src) => {
+            cfg.vlm_model_name = "vlm".into();
+            std::fs::create_dir_all(&vlm).map_err(|e| PolicyError::io(&vlm, e))?;
+            let entries = std::fs::read_dir(src).map_err(|e| PolicyError::io(src, e))?;
+            for entry in entries {
+                let path = entry.map_err(|e| PolicyError::io(src, e))?.path();
+                if path.is_file() && path.parent() != Some(vlm.as_path()) {
+                    let to = vlm.join(path.file_name().expect("file name"));
+                    std::fs::copy(&path, &to).map_err(|e| PolicyError::io(&to, e))?;
+                }
+            }
+        }
     }
     write_json(&dir.join("config.json"), &cfg.to_lerobot_json())?;
     write_safetensors(&dir.join("model.safetensors"), weights)?;
@@ -118,7 +138,16 @@ fn processor_config(cfg: &SmolVlaConfig) -> Value {
         "image_processor_type": "SmolVLMImageProcessor", "max_image_size": {"longest_edge": size},
         "resample": 1, "rescale_factor": 1.0 / 255.0, "size": {"longest_edge": size}
     });
-    json!({"image_processor": image, "image_seq_len": cfg.tokens_per_image(), "processor_class": "SmolVLMProcessor"})
+    let video = json!({
+        "do_convert_rgb": true, "do_normalize": true, "do_pad": true, "do_rescale": true, "do_resize": true,
+        "do_sample_frames": false, "image_mean": [0.5, 0.5, 0.5], "image_std": [0.5, 0.5, 0.5],
+        "max_image_size": {"longest_edge": size}, "resample": 1, "rescale_factor": 1.0 / 255.0,
+        "return_metadata": false, "size": {"longest_edge": size}, "video_processor_type": "SmolVLMVideoProcessor"
+    });
+    json!({
+        "image_processor": image, "video_processor": video, "image_seq_len": cfg.tokens_per_image(),
+        "processor_class": "SmolVLMProcessor"
+    })
 }
 
 #[cfg(test)]
@@ -141,7 +170,7 @@ mod tests {
         let cfg = SmolVlaConfig::tiny();
         let weights = init_random(&cfg.param_specs(), 7);
         let tok = WordTokenizer::from_texts(["put the cube in the bowl"]);
-        export(&dir, &cfg, &weights, &stats(), Some(&tok)).unwrap();
+        export(&dir, &cfg, &weights, &stats(), Backbone::Generated(&tok)).unwrap();
         let loaded = PolicyDir::load(&dir).unwrap();
         assert_eq!(loaded.weights.len(), weights.len());
         for (k, t) in &weights {

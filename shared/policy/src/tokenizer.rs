@@ -113,8 +113,10 @@ impl WordTokenizer {
     /// `tokenizer_config.json` naming the special tokens as SmolVLM2's does.
     pub fn tokenizer_config() -> Value {
         json!({
-            "bos_token": SPECIAL[1], "eos_token": SPECIAL[6], "pad_token": SPECIAL[2], "unk_token": SPECIAL[0],
-            "model_max_length": 8192, "tokenizer_class": "PreTrainedTokenizerFast"
+            "backend": "tokenizers", "bos_token": SPECIAL[1], "eos_token": SPECIAL[6], "pad_token": SPECIAL[2],
+            "unk_token": SPECIAL[0], "image_token": SPECIAL[3], "fake_image_token": SPECIAL[4],
+            "global_image_token": SPECIAL[5], "end_of_utterance_token": SPECIAL[6], "extra_special_tokens": [],
+            "model_max_length": 8192, "processor_class": "SmolVLMProcessor", "tokenizer_class": "TokenizersBackend"
         })
     }
 

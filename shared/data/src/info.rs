@@ -120,8 +120,9 @@ pub struct VideoInfo {
     pub codec: Option<String>,
     #[serde(rename = "video.pix_fmt", default)]
     pub pix_fmt: Option<String>,
+    /// A number as written (LeRobot writes an integer; some datasets a float).
     #[serde(rename = "video.fps", default)]
-    pub fps: Option<f64>,
+    pub fps: Option<serde_json::Number>,
     #[serde(rename = "video.channels", default)]
     pub channels: Option<u32>,
     #[serde(default)]
@@ -154,7 +155,7 @@ impl Feature {
     }
 
     /// An RGB camera stored as video.
-    pub fn video(height: u32, width: u32, fps: u32, codec: &str, gop: u32, extra_options: serde_json::Value) -> Self {
+    pub fn video(height: u32, width: u32, fps: u32, codec: &str, gop: u32) -> Self {
         Feature {
             dtype: "video".into(),
             shape: vec![height as usize, width as usize, 3],
@@ -164,7 +165,7 @@ impl Feature {
                 width: Some(width),
                 codec: Some(codec.into()),
                 pix_fmt: Some("yuv420p".into()),
-                fps: Some(f64::from(fps)),
+                fps: Some(fps.into()),
                 channels: Some(3),
                 has_audio: Some(false),
                 gop: Some(gop),
@@ -172,7 +173,7 @@ impl Feature {
                 preset: None,
                 fast_decode: Some(0),
                 video_backend: Some("pyav".into()),
-                extra_options: Some(extra_options),
+                extra_options: Some(serde_json::json!({})),
                 is_depth_map: Some(false),
             }),
         }

@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod info;
+pub mod reader;
 pub mod stats;
 pub mod synthetic;
 mod table;
@@ -12,6 +13,7 @@ pub mod writer;
 
 pub use error::{DataError, Result};
 pub use info::{CodebaseVersion, DatasetInfo, Feature, Features};
+pub use reader::{DeltaTimestamps, EpisodeMeta, EpisodeVideo, LeRobotDataset, Sample};
 pub use stats::{DatasetStats, FeatureStats};
 pub use video::{RgbImage, VideoEncoding};
 pub use writer::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, WriteProgress, WrittenDataset};

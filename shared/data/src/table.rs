@@ -91,14 +91,6 @@ impl Table {
         self.batches.iter().map(RecordBatch::num_rows).sum()
     }
 
-    pub fn has_column(&self, name: &str) -> bool {
-        self.batches.first().is_some_and(|b| b.schema().index_of(name).is_ok())
-    }
-
-    pub fn column_names(&self) -> Vec<String> {
-        self.batches.first().map(|b| b.schema().fields().iter().map(|f| f.name().clone()).collect()).unwrap_or_default()
-    }
-
     fn columns(&self, name: &str) -> Result<Vec<&ArrayRef>> {
         self.batches
             .iter()

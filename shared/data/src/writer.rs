@@ -520,8 +520,7 @@ fn build_features(spec: &DatasetSpec) -> Features {
         ("observation.state".to_string(), Feature::vector(&spec.joint_names)),
     ];
     for cam in &spec.cameras {
-        let extra = json!({"encoder": "openh264", "qp_max": spec.video.qp_max});
-        features.push((cam.key(), Feature::video(cam.height, cam.width, spec.fps, "h264", spec.video.gop, extra)));
+        features.push((cam.key(), Feature::video(cam.height, cam.width, spec.fps, "h264", spec.video.gop)));
     }
     for (name, dtype) in INDEX_FEATURES {
         features.push((name.to_string(), Feature::scalar(dtype)));

@@ -37,7 +37,8 @@ impl H264Encoder {
         let bitrate = (pixels_per_second * 2).clamp(200_000, u64::from(u32::MAX)) as u32;
         let config = EncoderConfig::new()
             .usage_type(UsageType::CameraVideoRealTime)
-            .rate_control_mode(RateControlMode::Quality)
+            // Buffer-based control: the bitrate-targeting modes need frame skipping, which must stay off.
+            .rate_control_mode(RateControlMode::Bufferbased)
             .bitrate(BitRate::from_bps(bitrate))
             .max_frame_rate(FrameRate::from_hz(fps as f32))
             // A skipped frame would shift every later frame's timestamp in the file.

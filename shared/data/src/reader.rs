@@ -1,0 +1,395 @@
+//! Reading LeRobot datasets, v3.0 and legacy v2.1: metadata (info, tasks, episodes, stats), the frame
+//! table, and samples by global index with `delta_timestamps` and `<key>_is_pad` flags, decoding
+//! camera frames from the mp4 files.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::error::{DataError, Result};
+use crate::info::{self, CodebaseVersion, DatasetInfo, EPISODES_PATH_V30};
+use crate::stats::{DatasetStats, load_stats};
+use crate::table::Table;
+use crate::video::{RgbImage, VideoCache};
+
+/// LeRobot's tolerance when matching a requested time to a video frame.
+pub const VIDEO_TOLERANCE_S: f64 = 1e-4;
+
+/// Columns every frame has; everything else float-valued is a vector feature.
+const BOOKKEEPING: [&str; 5] = ["timestamp", "frame_index", "episode_index", "index", "task_index"];
+
+/// Where an episode's frames of one camera live.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeVideo {
+    pub path: PathBuf,
+    /// Time of the episode's first frame inside the file (0 for v2.1's one-file-per-episode layout).
+    pub from_timestamp: f64,
+    pub to_timestamp: f64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeMeta {
+    pub episode_index: usize,
+    pub tasks: Vec<String>,
+    pub length: usize,
+    /// Global frame range `[from, to)`.
+    pub dataset_from_index: usize,
+    pub dataset_to_index: usize,
+    /// By camera key.
+    pub videos: BTreeMap<String, EpisodeVideo>,
+}
+
+/// Time offsets (seconds) to load around a frame, per feature key, e.g. `action: [0, 1/30, ..., 49/30]`.
+pub type DeltaTimestamps = BTreeMap<String, Vec<f64>>;
+
+/// One item: the frame's bookkeeping, its task, and every feature (one row, or one per delta).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    pub index: usize,
+    pub episode_index: usize,
+    pub frame_index: usize,
+    pub timestamp: f32,
+    pub task_index: usize,
+    pub task: String,
+    /// Vector features (e.g. `observation.state`, `action`): one row per delta (one row without deltas).
+    pub vectors: BTreeMap<String, Vec<Vec<f32>>>,
+    /// Camera frames: one per delta (one without deltas).
+    pub images: BTreeMap<String, Vec<RgbImage>>,
+    /// `<key>_is_pad` for each key with deltas: true where the offset falls outside the episode
+    /// (the value then repeats the episode's first or last frame).
+    pub is_pad: BTreeMap<String, Vec<bool>>,
+}
+
+/// A dataset opened for reading; the frame table (everything but the videos) is held in memory.
+pub struct LeRobotDataset {
+    root: PathBuf,
+    info: DatasetInfo,
+    version: CodebaseVersion,
+    tasks: Vec<String>,
+    episodes: Vec<EpisodeMeta>,
+    stats: Option<DatasetStats>,
+    /// Vector features by key: (values per row, flat row-major values).
+    vectors: BTreeMap<String, (usize, Vec<f32>)>,
+    timestamp: Vec<f32>,
+    frame_index: Vec<i64>,
+    episode_index: Vec<i64>,
+    task_index: Vec<i64>,
+    videos: VideoCache,
+}
+
+impl LeRobotDataset {
+    /// Opens the dataset at `root`, reading all metadata and frame tables and checking that every
+    /// referenced data and video file exists.
+    pub fn open(root: impl AsRef<Path>) -> Result<Self> {
+        let root = root.as_ref().to_path_buf();
+        let (info, version) = DatasetInfo::load(&root)?;
+        let (tasks, episodes, data_files) = match version {
+            CodebaseVersion::V30 => load_v30_meta(&root, &info)?,
+            CodebaseVersion::V21 => load_v21_meta(&root, &info)?,
+        };
+        for ep in &episodes {
+            for video in ep.videos.values() {
+                if !video.path.is_file() {
+                    return Err(DataError::MissingFile { path: video.path.clone() });
+                }
+            }
+        }
+        let stats_path = root.join("meta/stats.json");
+        let stats = if stats_path.is_file() { Some(load_stats(&stats_path)?) } else { None };
+
+        let vector_keys: Vec<(String, usize)> = info
+            .features
+            .0
+            .iter()
+            .filter(|(k, f)| matches!(f.dtype.as_str(), "float32" | "float64") && !BOOKKEEPING.contains(&k.as_str()))
+            .map(|(k, f)| (k.clone(), f.width()))
+            .collect();
+        let mut vectors: BTreeMap<String, (usize, Vec<f32>)> = vector_keys.iter().map(|(k, d)| (k.clone(), (*d, Vec::new()))).collect();
+        let (mut timestamp, mut frame_index, mut episode_index, mut task_index) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for path in &data_files {
+            let table = Table::read(path)?;
+            for (key, dim) in &vector_keys {
+                if let Some((_, values)) = vectors.get_mut(key) {
+                    values.extend(table.f32_rows(key, *dim)?);
+                }
+            }
+            timestamp.extend(table.f64_column("timestamp")?.into_iter().map(|t| t as f32));
+            frame_index.extend(table.i64_column("frame_index")?);
+            episode_index.extend(table.i64_column("episode_index")?);
+            task_index.extend(table.i64_column("task_index")?);
+        }
+        let total: usize = episodes.iter().map(|e| e.length).sum();
+        if timestamp.len() != total {
+            return Err(DataError::InvalidInput(format!(
+                "{}: data files hold {} rows, the episodes metadata {} frames",
+                root.display(),
+                timestamp.len(),
+                total
+            )));
+        }
+        Ok(Self { root, info, version, tasks, episodes, stats, vectors, timestamp, frame_index, episode_index, task_index, videos: VideoCache::default() })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn info(&self) -> &DatasetInfo {
+        &self.info
+    }
+
+    pub fn version(&self) -> CodebaseVersion {
+        self.version
+    }
+
+    pub fn fps(&self) -> u32 {
+        self.info.fps
+    }
+
+    /// Task strings by task index.
+    pub fn tasks(&self) -> &[String] {
+        &self.tasks
+    }
+
+    pub fn episodes(&self) -> &[EpisodeMeta] {
+        &self.episodes
+    }
+
+    pub fn stats(&self) -> Option<&DatasetStats> {
+        self.stats.as_ref()
+    }
+
+    /// Number of frames.
+    pub fn len(&self) -> usize {
+        self.timestamp.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.timestamp.is_empty()
+    }
+
+    pub fn camera_keys(&self) -> Vec<String> {
+        self.info.features.video_keys()
+    }
+
+    /// Row `index` of a vector feature.
+    pub fn vector(&self, key: &str, index: usize) -> Option<&[f32]> {
+        let (dim, values) = self.vectors.get(key)?;
+        values.get(index * dim..(index + 1) * dim)
+    }
+
+    pub fn task_index(&self, index: usize) -> Option<usize> {
+        self.task_index.get(index).map(|&t| t as usize)
+    }
+
+    /// The episode holding global frame `index`.
+    pub fn episode_of(&self, index: usize) -> Result<&EpisodeMeta> {
+        let len = self.len();
+        let pos = self.episodes.partition_point(|e| e.dataset_to_index <= index);
+        self.episodes.get(pos).filter(|e| e.dataset_from_index <= index).ok_or(DataError::IndexOutOfRange { index, len })
+    }
+
+    /// Decodes the frames of `camera` at global indices `indices` (all from one episode).
+    pub fn camera_frames(&self, camera: &str, episode: &EpisodeMeta, indices: &[usize]) -> Result<Vec<RgbImage>> {
+        let video = episode
+            .videos
+            .get(camera)
+            .ok_or_else(|| DataError::InvalidInput(format!("episode {} has no video for {camera:?}", episode.episode_index)))?;
+        let file = self.videos.get(&video.path)?;
+        let times: Vec<f64> = indices.iter().map(|&i| video.from_timestamp + f64::from(self.timestamp[i])).collect();
+        file.frames_at(&times, VIDEO_TOLERANCE_S)
+    }
+
+    /// Frame `index` with the features in `delta` loaded at those offsets (LeRobot's `__getitem__`).
+    pub fn get(&self, index: usize, delta: &DeltaTimestamps) -> Result<Sample> {
+        let episode = self.episode_of(index)?;
+        let fps = f64::from(self.info.fps);
+        let (from, to) = (episode.dataset_from_index, episode.dataset_to_index);
+        // Offsets in frames, the clamped frame each reads, and whether it fell outside the episode.
+        let resolve = |key: &str| -> (Vec<usize>, Option<Vec<bool>>) {
+            match delta.get(key) {
+                None => (vec![index], None),
+                Some(offsets) => {
+                    let mut rows = Vec::with_capacity(offsets.len());
+                    let mut pad = Vec::with_capacity(offsets.len());
+                    for &d in offsets {
+                        let target = index as i64 + (d * fps).round() as i64;
+                        pad.push(target < from as i64 || target >= to as i64);
+                        rows.push(target.clamp(from as i64, to as i64 - 1) as usize);
+                    }
+                    (rows, Some(pad))
+                }
+            }
+        };
+        let mut sample = Sample {
+            index,
+            episode_index: self.episode_index[index] as usize,
+            frame_index: self.frame_index[index] as usize,
+            timestamp: self.timestamp[index],
+            task_index: self.task_index[index] as usize,
+            task: self.tasks.get(self.task_index[index] as usize).cloned().unwrap_or_default(),
+            vectors: BTreeMap::new(),
+            images: BTreeMap::new(),
+            is_pad: BTreeMap::new(),
+        };
+        for (key, (dim, values)) in &self.vectors {
+            let (rows, pad) = resolve(key);
+            sample.vectors.insert(key.clone(), rows.iter().map(|&r| values[r * dim..(r + 1) * dim].to_vec()).collect());
+            if let Some(pad) = pad {
+                sample.is_pad.insert(format!("{key}_is_pad"), pad);
+            }
+        }
+        for camera in self.camera_keys() {
+            let (rows, pad) = resolve(&camera);
+            sample.images.insert(camera.clone(), self.camera_frames(&camera, episode, &rows)?);
+            if let Some(pad) = pad {
+                sample.is_pad.insert(format!("{camera}_is_pad"), pad);
+            }
+        }
+        Ok(sample)
+    }
+}
+
+/// v3.0: tasks.parquet, meta/episodes/**.parquet, data files referenced by the episodes.
+fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
+    let tasks_table = Table::read(&root.join("meta/tasks.parquet"))?;
+    let mut tasks: Vec<(i64, String)> =
+        tasks_table.i64_column("task_index")?.into_iter().zip(tasks_table.string_column("task")?).collect();
+    tasks.sort();
+    let tasks = tasks.into_iter().map(|(_, t)| t).collect();
+
+    let episode_files = files_under(&root.join("meta/episodes"), "parquet")?;
+    if episode_files.is_empty() {
+        return Err(DataError::MissingFile { path: info::v30_path(root, EPISODES_PATH_V30, 0, 0, None) });
+    }
+    let video_keys = info.features.video_keys();
+    let video_template = info.video_path.clone().unwrap_or_else(|| info::VIDEO_PATH_V30.to_string());
+    let mut episodes = Vec::new();
+    let mut data_files: Vec<(i64, i64)> = Vec::new();
+    for path in episode_files {
+        let t = Table::read(&path)?;
+        let index = t.i64_column("episode_index")?;
+        let task_lists = t.string_list_column("tasks")?;
+        let length = t.i64_column("length")?;
+        let from = t.i64_column("dataset_from_index")?;
+        let to = t.i64_column("dataset_to_index")?;
+        let data_chunk = t.i64_column("data/chunk_index")?;
+        let data_file = t.i64_column("data/file_index")?;
+        let mut videos: Vec<(String, Vec<i64>, Vec<i64>, Vec<f64>, Vec<f64>)> = Vec::new();
+        for key in &video_keys {
+            videos.push((
+                key.clone(),
+                t.i64_column(&format!("videos/{key}/chunk_index"))?,
+                t.i64_column(&format!("videos/{key}/file_index"))?,
+                t.f64_column(&format!("videos/{key}/from_timestamp"))?,
+                t.f64_column(&format!("videos/{key}/to_timestamp"))?,
+            ));
+        }
+        for row in 0..t.num_rows() {
+            if !data_files.contains(&(data_chunk[row], data_file[row])) {
+                data_files.push((data_chunk[row], data_file[row]));
+            }
+            episodes.push(EpisodeMeta {
+                episode_index: index[row] as usize,
+                tasks: task_lists[row].clone(),
+                length: length[row] as usize,
+                dataset_from_index: from[row] as usize,
+                dataset_to_index: to[row] as usize,
+                videos: videos
+                    .iter()
+                    .map(|(key, chunk, file, from_ts, to_ts)| {
+                        let path = info::v30_path(root, &video_template, chunk[row] as u64, file[row] as u64, Some(key));
+                        (key.clone(), EpisodeVideo { path, from_timestamp: from_ts[row], to_timestamp: to_ts[row] })
+                    })
+                    .collect(),
+            });
+        }
+    }
+    episodes.sort_by_key(|e| e.dataset_from_index);
+    data_files.sort();
+    let data_paths = data_files.into_iter().map(|(c, f)| info::v30_path(root, &info.data_path, c as u64, f as u64, None)).collect();
+    Ok((tasks, episodes, data_paths))
+}
+
+#[derive(Deserialize)]
+struct TaskLine {
+    task_index: i64,
+    task: String,
+}
+
+#[derive(Deserialize)]
+struct EpisodeLine {
+    episode_index: usize,
+    tasks: Vec<String>,
+    length: usize,
+}
+
+/// v2.1: JSON-lines metadata, one parquet and one mp4 per camera per episode.
+fn load_v21_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
+    let mut task_lines: Vec<TaskLine> = read_jsonl(&root.join("meta/tasks.jsonl"))?;
+    task_lines.sort_by_key(|t| t.task_index);
+    let tasks = task_lines.into_iter().map(|t| t.task).collect();
+    let mut lines: Vec<EpisodeLine> = read_jsonl(&root.join("meta/episodes.jsonl"))?;
+    lines.sort_by_key(|e| e.episode_index);
+    let video_keys = info.features.video_keys();
+    let chunks_size = info.chunks_size.max(1);
+    let mut episodes = Vec::with_capacity(lines.len());
+    let mut data_paths = Vec::with_capacity(lines.len());
+    let mut from = 0;
+    for line in lines {
+        let ints = [("episode_chunk", line.episode_index as u64 / chunks_size), ("episode_index", line.episode_index as u64)];
+        data_paths.push(root.join(info::fill_template(&info.data_path, &ints, None)));
+        let videos = video_keys
+            .iter()
+            .filter_map(|key| {
+                let template = info.video_path.as_ref()?;
+                let path = root.join(info::fill_template(template, &ints, Some(key)));
+                let to_timestamp = line.length as f64 / f64::from(info.fps);
+                Some((key.clone(), EpisodeVideo { path, from_timestamp: 0.0, to_timestamp }))
+            })
+            .collect();
+        episodes.push(EpisodeMeta {
+            episode_index: line.episode_index,
+            tasks: line.tasks,
+            length: line.length,
+            dataset_from_index: from,
+            dataset_to_index: from + line.length,
+            videos,
+        });
+        from += line.length;
+    }
+    Ok((tasks, episodes, data_paths))
+}
+
+fn read_jsonl<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
+    let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(i, l)| serde_json::from_str(l).map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: format!("line {}: {e}", i + 1) }))
+        .collect()
+}
+
+/// Files with extension `ext` under `dir`, recursively, sorted by path.
+fn files_under(dir: &Path, ext: &str) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        let entries = match std::fs::read_dir(&d) {
+            Ok(e) => e,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(DataError::io(&d, e)),
+        };
+        for entry in entries {
+            let path = entry.map_err(|e| DataError::io(&d, e))?.path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.extension().is_some_and(|e| e == ext) {
+                out.push(path);
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}

@@ -1,0 +1,109 @@
+//! Subcommands. To add one: create `src/cmd/<name>.rs` with `pub struct Args` (clap::Args) and
+//! `pub fn run(args: Args) -> anyhow::Result<()>`, then add a variant to [`Command`] and an arm to [`run`].
+
+mod join;
+mod serve;
+mod simulate;
+
+use std::fs::File;
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+use anyhow::Context;
+use clap::Subcommand;
+use fedvla_federation::FedAvg;
+use fedvla_server::config::{RunConfig, StrategyKind, WorkloadKind};
+use fedvla_server::linreg::{self, LinRegEvaluator};
+use fedvla_server::run_dir::RunDir;
+use fedvla_server::server::ServerParts;
+use tracing_subscriber::filter::{EnvFilter, LevelFilter};
+use tracing_subscriber::layer::SubscriberExt;
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::{Layer, fmt};
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// Run the aggregation server.
+    Serve(serve::Args),
+    /// Join a server as a native client and train on a local shard.
+    Join(join::Args),
+    /// Run a server and N native clients in one process over loopback WebSockets.
+    Simulate(simulate::Args),
+}
+
+pub fn run(command: Command) -> anyhow::Result<()> {
+    match command {
+        Command::Serve(args) => serve::run(args),
+        Command::Join(args) => join::run(args),
+        Command::Simulate(args) => simulate::run(args),
+    }
+}
+
+/// `--config` and `--run-config`, shared by the subcommands that run a federation.
+#[derive(clap::Args)]
+pub struct ConfigArgs {
+    /// Run configuration file (defaults to the built-in configs/default.toml).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Overrides, e.g. "num-server-rounds=5 fraction-fit=0.5 seed=7".
+    #[arg(long, default_value = "")]
+    run_config: String,
+}
+
+impl ConfigArgs {
+    fn load(&self) -> anyhow::Result<RunConfig> {
+        let base = match &self.config {
+            Some(path) => RunConfig::load(path)?,
+            None => RunConfig::default(),
+        };
+        Ok(base.with_overrides(&self.run_config)?)
+    }
+}
+
+/// The server side of the configured workload and strategy.
+fn server_parts(config: RunConfig, run_dir: RunDir) -> ServerParts {
+    let (initial, evaluator) = match config.workload {
+        WorkloadKind::Linreg => (linreg::initial_model(config.seed), Box::new(LinRegEvaluator::default())),
+    };
+    let strategy = match config.strategy {
+        StrategyKind::Fedavg => Box::new(FedAvg),
+    };
+    ServerParts { config, run_dir, initial, strategy, evaluator, exporters: Vec::new() }
+}
+
+/// Logs to stderr at `stderr_level` (unless RUST_LOG says otherwise) and, at info, to `server.log`.
+fn init_tracing(log_file: Option<File>, stderr_level: LevelFilter) {
+    let stderr_filter = EnvFilter::builder().with_default_directive(stderr_level.into()).from_env_lossy();
+    let file_layer = log_file
+        .map(|f| fmt::layer().with_ansi(false).with_writer(Mutex::new(f)).with_filter(LevelFilter::INFO));
+    tracing_subscriber::registry()
+        .with(fmt::layer().with_writer(std::io::stderr).with_filter(stderr_filter))
+        .with(file_layer)
+        .init();
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")
+}
+
+/// Resolves on ctrl-c or SIGTERM.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        tokio::signal::ctrl_c().await.ok();
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {}
+        () = terminate => {}
+    }
+}

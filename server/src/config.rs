@@ -1,0 +1,205 @@
+//! Run configuration: `configs/default.toml` plus `--run-config "key=value ..."` overrides.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("reading {path}: {source}")]
+    Read { path: String, source: std::io::Error },
+    #[error("parsing {path}: {source}")]
+    Parse { path: String, source: Box<toml::de::Error> },
+    #[error("override `{0}` is not of the form key=value")]
+    NotKeyValue(String),
+    #[error("unknown config key `{key}`; known keys: {known}")]
+    UnknownKey { key: String, known: String },
+    #[error("bad value for `{key}`: {message}")]
+    BadValue { key: String, message: String },
+    #[error("invalid configuration: {0}")]
+    Invalid(String),
+}
+
+/// Aggregation strategy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StrategyKind {
+    Fedavg,
+}
+
+/// What the clients train and the server evaluates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WorkloadKind {
+    /// Least-squares linear regression on synthetic data (see [`crate::linreg`]).
+    Linreg,
+}
+
+/// How the dataset is split across clients.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Partitioning {
+    /// Every client draws from the same distribution.
+    Iid,
+    /// Each client holds whole episodes, so its data is skewed towards its own states.
+    ByEpisode,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case", deny_unknown_fields)]
+pub struct RunConfig {
+    pub num_server_rounds: u64,
+    pub fraction_fit: f64,
+    pub min_clients: usize,
+    pub min_fit: usize,
+    pub local_steps: u32,
+    pub batch_size: u32,
+    pub lr: f64,
+    pub seed: u64,
+    pub strategy: StrategyKind,
+    pub workload: WorkloadKind,
+    pub dataset: String,
+    pub partitioning: Partitioning,
+    pub model_size: String,
+    pub eval_every: u64,
+    pub round_deadline_ms: u64,
+    pub listen: String,
+    pub max_frame_bytes: usize,
+    pub auth_token: String,
+    pub output_dir: String,
+}
+
+/// `configs/default.toml`, built in so the binary runs from anywhere.
+pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        Self::from_toml(DEFAULT_CONFIG, "configs/default.toml").expect("configs/default.toml is valid")
+    }
+}
+
+impl RunConfig {
+    pub fn from_toml(text: &str, path: &str) -> Result<Self, ConfigError> {
+        let cfg: Self =
+            toml::from_str(text).map_err(|e| ConfigError::Parse { path: path.into(), source: Box::new(e) })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Read { path: path.display().to_string(), source })?;
+        Self::from_toml(&text, &path.display().to_string())
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).expect("config serializes")
+    }
+
+    /// Applies space-separated `key=value` overrides (kebab-case keys, TOML values; bare words are strings).
+    pub fn with_overrides(&self, overrides: &str) -> Result<Self, ConfigError> {
+        let mut table = toml::Table::try_from(self).expect("config serializes to a table");
+        for pair in overrides.split_whitespace() {
+            let (key, raw) = pair.split_once('=').ok_or_else(|| ConfigError::NotKeyValue(pair.into()))?;
+            let Some(current) = table.get(key) else {
+                return Err(ConfigError::UnknownKey {
+                    key: key.into(),
+                    known: table.keys().cloned().collect::<Vec<_>>().join(", "),
+                });
+            };
+            let value = parse_value(raw, current)
+                .map_err(|message| ConfigError::BadValue { key: key.into(), message })?;
+            table.insert(key.into(), value);
+        }
+        let cfg: Self = table.try_into().map_err(|e: toml::de::Error| ConfigError::BadValue {
+            key: "run-config".into(),
+            message: e.message().to_owned(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let fail = |m: String| Err(ConfigError::Invalid(m));
+        if !(self.fraction_fit > 0.0 && self.fraction_fit <= 1.0) {
+            return fail(format!("fraction-fit must be in (0, 1], got {}", self.fraction_fit));
+        }
+        if self.min_fit == 0 {
+            return fail("min-fit must be at least 1".into());
+        }
+        if self.min_clients < self.min_fit {
+            return fail(format!("min-clients ({}) must be at least min-fit ({})", self.min_clients, self.min_fit));
+        }
+        if self.local_steps == 0 || self.batch_size == 0 {
+            return fail("local-steps and batch-size must be at least 1".into());
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0) {
+            return fail(format!("lr must be positive, got {}", self.lr));
+        }
+        if self.eval_every == 0 {
+            return fail("eval-every must be at least 1".into());
+        }
+        if self.round_deadline_ms == 0 {
+            return fail("round-deadline-ms must be at least 1".into());
+        }
+        if self.max_frame_bytes <= fedvla_federation::codec::HEADER_LEN {
+            return fail(format!("max-frame-bytes must exceed {}", fedvla_federation::codec::HEADER_LEN));
+        }
+        Ok(())
+    }
+}
+
+/// Parses `raw` as a TOML value of the same type as `current`.
+fn parse_value(raw: &str, current: &toml::Value) -> Result<toml::Value, String> {
+    use toml::Value;
+    let parsed = toml::from_str::<toml::Table>(&format!("v = {raw}")).ok().and_then(|mut t| t.remove("v"));
+    match (current, parsed) {
+        (Value::String(_), Some(Value::String(s))) => Ok(Value::String(s)),
+        (Value::String(_), _) => Ok(Value::String(raw.to_owned())),
+        (Value::Integer(_), Some(Value::Integer(i))) => Ok(Value::Integer(i)),
+        (Value::Float(_), Some(Value::Float(f))) => Ok(Value::Float(f)),
+        (Value::Float(_), Some(Value::Integer(i))) => Ok(Value::Float(i as f64)),
+        (Value::Boolean(_), Some(Value::Boolean(b))) => Ok(Value::Boolean(b)),
+        (current, _) => Err(format!("`{raw}` is not of type {}", current.type_str())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_parses_and_round_trips() {
+        let cfg = RunConfig::default();
+        assert_eq!(cfg.strategy, StrategyKind::Fedavg);
+        assert_eq!(RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(), cfg);
+    }
+
+    #[test]
+    fn overrides_apply() {
+        let cfg = RunConfig::default()
+            .with_overrides("num-server-rounds=5 fraction-fit=0.5 seed=7 lr=1 partitioning=iid dataset=/d/x")
+            .unwrap();
+        assert_eq!(cfg.num_server_rounds, 5);
+        assert_eq!(cfg.fraction_fit, 0.5);
+        assert_eq!(cfg.seed, 7);
+        assert_eq!(cfg.lr, 1.0);
+        assert_eq!(cfg.partitioning, Partitioning::Iid);
+        assert_eq!(cfg.dataset, "/d/x");
+    }
+
+    #[test]
+    fn overrides_fail_clearly() {
+        let base = RunConfig::default();
+        let err = base.with_overrides("num-rounds=5").unwrap_err().to_string();
+        assert!(err.starts_with("unknown config key `num-rounds`; known keys:"), "{err}");
+        assert!(err.contains("num-server-rounds"), "{err}");
+        let err = base.with_overrides("seed=seven").unwrap_err().to_string();
+        assert_eq!(err, "bad value for `seed`: `seven` is not of type integer");
+        let err = base.with_overrides("strategy=fedmagic").unwrap_err().to_string();
+        assert!(err.contains("fedmagic") && err.contains("fedavg"), "{err}");
+        let err = base.with_overrides("fraction-fit=1.5").unwrap_err().to_string();
+        assert_eq!(err, "invalid configuration: fraction-fit must be in (0, 1], got 1.5");
+        assert!(matches!(base.with_overrides("seed"), Err(ConfigError::NotKeyValue(_))));
+    }
+}

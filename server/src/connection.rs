@@ -1,0 +1,292 @@
+//! One client's WebSocket: join handshake, control messages, update reassembly and validation. Generic over
+//! Sink/Stream so it runs over channels in unit tests. Bad input is answered with an `Error` message to this
+//! client and counted by the coordinator; only fatal errors close the connection.
+
+use std::fmt::Display;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use axum::extract::ws::Message;
+use fedvla_federation::codec::decode_payload;
+use fedvla_federation::{
+    ClientMessage, CodecError, ErrorCode, NamedTensors, PROTOCOL_VERSION, Reassembler, ServerMessage,
+};
+use futures_util::{Sink, SinkExt, Stream, StreamExt};
+use tokio::sync::mpsc;
+
+use crate::app::AppState;
+use crate::coordinator::{Event, UpdateReceived};
+
+/// Serves one connection until the client leaves, a fatal error, or shutdown.
+pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: AppState)
+where
+    S: Sink<Message> + Unpin,
+    S::Error: Display,
+    R: Stream<Item = Result<Message, E>> + Unpin,
+    E: Display,
+{
+    let mut conn = Connection { sink, state, client_id: None, upload: Upload::Idle };
+    let Some(mut outbox) = conn.join(&mut stream).await else {
+        conn.close().await;
+        return;
+    };
+    let client_id = conn.client_id.expect("joined");
+    loop {
+        let flow = tokio::select! {
+            () = conn.state.cancel.cancelled() => {
+                conn.send(&ServerMessage::Error { code: ErrorCode::ShuttingDown, message: "server shutting down".into() }).await;
+                Flow::Close
+            }
+            msg = outbox.recv() => match msg {
+                Some(msg) => conn.send(&msg).await,
+                None => Flow::Close,
+            },
+            frame = stream.next() => match frame {
+                Some(Ok(Message::Text(text))) => conn.on_text(text.as_str()).await,
+                Some(Ok(Message::Binary(data))) => conn.on_binary(&data).await,
+                Some(Ok(Message::Ping(_) | Message::Pong(_))) => Flow::Continue,
+                Some(Ok(Message::Close(_))) | None => Flow::Gone,
+                Some(Err(e)) => {
+                    tracing::info!(client_id, error = %e, "websocket error");
+                    Flow::Gone
+                }
+            },
+        };
+        match flow {
+            Flow::Continue => {}
+            Flow::Close => {
+                conn.close().await;
+                break;
+            }
+            Flow::Gone => break,
+        }
+    }
+    tracing::info!(client_id, "client left");
+    conn.state.events.send(Event::Left { client_id }).await.ok();
+}
+
+enum Flow {
+    Continue,
+    /// Close our side (after a fatal error or at shutdown).
+    Close,
+    /// The client closed or the socket broke.
+    Gone,
+}
+
+/// Where an upload stands.
+enum Upload {
+    Idle,
+    Receiving { header: AnnouncedUpdate, reassembler: Option<Reassembler>, bytes: u64 },
+    /// A refused update: its remaining frames are dropped silently until the next control message.
+    Discarding,
+}
+
+#[derive(Clone, Copy)]
+struct AnnouncedUpdate {
+    round: u64,
+    examples: u64,
+    train_loss: f64,
+    payload_bytes: u64,
+}
+
+struct Connection<S> {
+    sink: S,
+    state: AppState,
+    client_id: Option<u64>,
+    upload: Upload,
+}
+
+impl<S> Connection<S>
+where
+    S: Sink<Message> + Unpin,
+    S::Error: Display,
+{
+    /// Waits for `Join`, checks version and token, registers with the coordinator and welcomes the client.
+    async fn join<R, E>(&mut self, stream: &mut R) -> Option<mpsc::UnboundedReceiver<ServerMessage>>
+    where
+        R: Stream<Item = Result<Message, E>> + Unpin,
+    {
+        let text = tokio::select! {
+            () = self.state.cancel.cancelled() => return None,
+            frame = stream.next() => match frame {
+                Some(Ok(Message::Text(text))) => text,
+                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return None,
+                Some(Ok(_)) => {
+                    self.refuse(ErrorCode::UnexpectedMessage, "the first message must be a join".into()).await;
+                    return None;
+                }
+            },
+        };
+        let (name, capabilities) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
+            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities }) => {
+                if protocol_version != PROTOCOL_VERSION {
+                    let message =
+                        format!("client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}");
+                    self.refuse(ErrorCode::ProtocolVersion, message).await;
+                    return None;
+                }
+                if let Some(expected) = &self.state.auth_token
+                    && auth_token.as_deref() != Some(expected)
+                {
+                    self.refuse(ErrorCode::Unauthorized, "missing or wrong auth token".into()).await;
+                    return None;
+                }
+                (name, capabilities)
+            }
+            Ok(other) => {
+                self.refuse(ErrorCode::UnexpectedMessage, format!("the first message must be a join, got {other:?}"))
+                    .await;
+                return None;
+            }
+            Err(e) => {
+                self.refuse(ErrorCode::MalformedMessage, format!("bad join message: {e}")).await;
+                return None;
+            }
+        };
+        let client_id = self.state.next_client_id.fetch_add(1, Ordering::Relaxed);
+        self.client_id = Some(client_id);
+        let (outbox, inbox) = mpsc::unbounded_channel();
+        tracing::info!(client_id, %name, backend = %capabilities.backend, "client joined");
+        let joined = Event::Joined { client_id, name, capabilities, outbox };
+        if self.state.events.send(joined).await.is_err() {
+            return None;
+        }
+        let welcome = ServerMessage::Welcome {
+            client_id,
+            protocol_version: PROTOCOL_VERSION,
+            max_frame_bytes: self.state.limits.max_frame_bytes as u32,
+        };
+        match self.send(&welcome).await {
+            Flow::Continue => Some(inbox),
+            Flow::Close | Flow::Gone => None,
+        }
+    }
+
+    async fn on_text(&mut self, text: &str) -> Flow {
+        let client_id = self.client_id.expect("joined");
+        if matches!(self.upload, Upload::Receiving { .. }) {
+            self.upload = Upload::Idle;
+            return self.refuse(ErrorCode::MalformedFrame, "control message in the middle of an update".into()).await;
+        }
+        self.upload = Upload::Idle;
+        let msg = match serde_json::from_str::<ClientMessage>(text) {
+            Ok(msg) => msg,
+            Err(e) => return self.refuse(ErrorCode::MalformedMessage, format!("bad control message: {e}")).await,
+        };
+        let event = match msg {
+            ClientMessage::Join { .. } => {
+                return self.refuse(ErrorCode::UnexpectedMessage, "already joined".into()).await;
+            }
+            ClientMessage::Heartbeat => {
+                tracing::trace!(client_id, "heartbeat");
+                return Flow::Continue;
+            }
+            ClientMessage::UpdateHeader { round, examples, train_loss, payload_bytes } => {
+                let limit = self.state.limits.max_payload_bytes;
+                if payload_bytes > limit {
+                    return self.refuse_codec(CodecError::Oversized { len: payload_bytes, limit }).await;
+                }
+                let header = AnnouncedUpdate { round, examples, train_loss, payload_bytes };
+                self.upload = Upload::Receiving { header, reassembler: None, bytes: 0 };
+                return Flow::Continue;
+            }
+            ClientMessage::Metrics(metrics) => Event::Metrics { client_id, metrics },
+            ClientMessage::EvalResult { round, examples, loss } => Event::EvalResult { client_id, round, examples, loss },
+        };
+        self.emit(event).await
+    }
+
+    async fn on_binary(&mut self, frame: &[u8]) -> Flow {
+        let Upload::Receiving { header, reassembler, bytes } = &mut self.upload else {
+            if matches!(self.upload, Upload::Discarding) {
+                return Flow::Continue;
+            }
+            return self.refuse(ErrorCode::UnexpectedMessage, "binary frame without an update header".into()).await;
+        };
+        let header = *header;
+        *bytes += frame.len() as u64;
+        let pushed = match reassembler {
+            Some(r) => r.push(frame),
+            None => Reassembler::start(frame, self.state.limits).and_then(|r| {
+                let first = r.header();
+                if first.round != header.round || first.payload_len != header.payload_bytes {
+                    return Err(CodecError::Malformed(format!(
+                        "frames carry round {} and {} bytes, the update header announced round {} and {} bytes",
+                        first.round, first.payload_len, header.round, header.payload_bytes
+                    )));
+                }
+                *reassembler = Some(r);
+                Ok(())
+            }),
+        };
+        if let Err(e) = pushed {
+            return self.refuse_codec(e).await;
+        }
+        if !reassembler.as_ref().is_some_and(Reassembler::is_complete) {
+            return Flow::Continue;
+        }
+        let bytes = *bytes;
+        let Upload::Receiving { reassembler: Some(reassembler), .. } = std::mem::replace(&mut self.upload, Upload::Idle)
+        else {
+            unreachable!("checked above")
+        };
+        let spec = Arc::clone(&self.state.spec);
+        let decoded = tokio::task::spawn_blocking(move || -> Result<NamedTensors, CodecError> {
+            decode_payload(&reassembler.finish()?, &spec)
+        })
+        .await
+        .expect("decoding does not panic");
+        match decoded {
+            Ok(tensors) => {
+                let client_id = self.client_id.expect("joined");
+                tracing::debug!(client_id, round = header.round, bytes, "update received");
+                let update = UpdateReceived {
+                    round: header.round,
+                    tensors,
+                    examples: header.examples,
+                    train_loss: header.train_loss,
+                    bytes,
+                };
+                self.emit(Event::Update { client_id, update: Box::new(update) }).await
+            }
+            Err(e) => self.refuse_codec(e).await,
+        }
+    }
+
+    async fn refuse_codec(&mut self, e: CodecError) -> Flow {
+        self.refuse(e.code(), e.to_string()).await
+    }
+
+    /// Sends an error to this client, has the coordinator count it, and closes only on fatal errors.
+    async fn refuse(&mut self, code: ErrorCode, message: String) -> Flow {
+        tracing::warn!(client_id = ?self.client_id, code = code.as_str(), %message, "refused client input");
+        if !matches!(self.upload, Upload::Idle) {
+            self.upload = Upload::Discarding;
+        }
+        self.emit(Event::Rejected { client_id: self.client_id, code }).await;
+        let flow = self.send(&ServerMessage::Error { code, message }).await;
+        if code.is_fatal() { Flow::Close } else { flow }
+    }
+
+    async fn emit(&mut self, event: Event) -> Flow {
+        match self.state.events.send(event).await {
+            Ok(()) => Flow::Continue,
+            Err(_) => Flow::Close,
+        }
+    }
+
+    async fn send(&mut self, msg: &ServerMessage) -> Flow {
+        let text = serde_json::to_string(msg).expect("server messages serialize");
+        match self.sink.send(Message::Text(text.into())).await {
+            Ok(()) => Flow::Continue,
+            Err(e) => {
+                tracing::info!(client_id = ?self.client_id, error = %e, "send failed");
+                Flow::Gone
+            }
+        }
+    }
+
+    async fn close(&mut self) {
+        self.sink.send(Message::Close(None)).await.ok();
+    }
+}

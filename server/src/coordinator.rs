@@ -1,0 +1,416 @@
+//! The one aggregation task: owns the clients' outboxes, the global model, the strategy and the run directory,
+//! and is fed by the connections through a channel.
+//!
+//! Round lifecycle: wait for `min-clients`; sample clients (seeded, by `fraction-fit`); send tasks; collect until
+//! every sampled client is done or the deadline passes; aggregate; evaluate; persist; next round. A round with
+//! fewer than `min-fit` updates is retried with a fresh sample.
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use axum::body::Bytes;
+use fedvla_federation::{
+    AggregateError, BoxError, Capabilities, ErrorCode, EvalMetrics, Evaluator, NamedTensors, RoundMetrics, RoundTask,
+    ServerMessage, Strategy,
+};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use serde_json::json;
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+use crate::app::PublishedModel;
+use crate::config::RunConfig;
+use crate::run_dir::{ModelExporter, RunDir, RunDirError};
+
+/// What connections tell the coordinator.
+#[derive(Debug)]
+pub enum Event {
+    Joined { client_id: u64, name: String, capabilities: Capabilities, outbox: mpsc::UnboundedSender<ServerMessage> },
+    Left { client_id: u64 },
+    Update { client_id: u64, update: Box<UpdateReceived> },
+    Metrics { client_id: u64, metrics: RoundMetrics },
+    EvalResult { client_id: u64, round: u64, examples: u64, loss: f64 },
+    /// Input refused by a connection (already answered with an `Error`); `None` before the client joined.
+    Rejected { client_id: Option<u64>, code: ErrorCode },
+}
+
+/// A complete, validated update.
+#[derive(Debug)]
+pub struct UpdateReceived {
+    pub round: u64,
+    pub tensors: NamedTensors,
+    pub examples: u64,
+    pub train_loss: f64,
+    /// Bytes of the update's binary frames, headers included.
+    pub bytes: u64,
+}
+
+/// Where the run stands, published after every change.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunStatus {
+    pub completed_rounds: u64,
+    pub connected: usize,
+    /// Refused client inputs by error code, since the server started.
+    pub rejections: BTreeMap<ErrorCode, u64>,
+    /// Round attempts that closed with too few updates.
+    pub retried_rounds: u64,
+    pub finished: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoordinatorError {
+    #[error("cancelled")]
+    Cancelled,
+    #[error(transparent)]
+    RunDir(#[from] RunDirError),
+    #[error("aggregation failed: {0}")]
+    Aggregate(#[from] AggregateError),
+    #[error("evaluation failed: {0}")]
+    Evaluate(BoxError),
+}
+
+/// Everything the coordinator owns.
+pub struct Coordinator {
+    pub config: RunConfig,
+    pub events: mpsc::Receiver<Event>,
+    pub cancel: CancellationToken,
+    /// Locked only by the coordinator's own blocking jobs (aggregation runs off the async runtime).
+    pub strategy: Arc<Mutex<Box<dyn Strategy + Send>>>,
+    pub evaluator: Arc<Mutex<Box<dyn Evaluator + Send>>>,
+    pub exporters: Arc<Vec<Box<dyn ModelExporter>>>,
+    pub run_dir: RunDir,
+    pub global: Arc<NamedTensors>,
+    /// The last completed round; `None` for a fresh run (round 0, the initial evaluation, is still to do).
+    pub completed: Option<u64>,
+    pub model_tx: watch::Sender<Arc<PublishedModel>>,
+    pub status_tx: watch::Sender<RunStatus>,
+}
+
+struct ClientEntry {
+    name: String,
+    outbox: mpsc::UnboundedSender<ServerMessage>,
+}
+
+#[derive(Default)]
+struct Participant {
+    update: Option<UpdateReceived>,
+    metrics: Option<RoundMetrics>,
+    eval: Option<(u64, f64)>,
+    refused: Vec<ErrorCode>,
+    done: bool,
+}
+
+struct RoundState {
+    round: u64,
+    participants: BTreeMap<u64, Participant>,
+}
+
+impl Coordinator {
+    pub async fn run(self) -> Result<RunStatus, CoordinatorError> {
+        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new() };
+        let result = this.run().await;
+        if let Err(e) = &result {
+            tracing::warn!(error = %e, "coordinator stopped");
+        }
+        result
+    }
+}
+
+struct Running {
+    c: Coordinator,
+    clients: BTreeMap<u64, ClientEntry>,
+    /// Refusals since the last metrics line.
+    round_rejections: BTreeMap<ErrorCode, u64>,
+}
+
+impl Running {
+    async fn run(&mut self) -> Result<RunStatus, CoordinatorError> {
+        let first = match self.c.completed {
+            Some(round) => {
+                tracing::info!(round, "resuming after the last completed round");
+                round + 1
+            }
+            None => {
+                let metrics = self.evaluate(0).await?;
+                self.persist(0, json!({ "clients": [], "global": metrics })).await?;
+                1
+            }
+        };
+        for round in first..=self.c.config.num_server_rounds {
+            self.run_round(round).await?;
+        }
+        let rounds = self.c.config.num_server_rounds;
+        for client in self.clients.values() {
+            client.outbox.send(ServerMessage::Finished { rounds }).ok();
+        }
+        self.c.status_tx.send_modify(|s| s.finished = true);
+        tracing::info!(rounds, "run finished");
+        Ok(self.c.status_tx.borrow().clone())
+    }
+
+    async fn run_round(&mut self, round: u64) -> Result<(), CoordinatorError> {
+        for attempt in 0.. {
+            self.wait_for_clients().await?;
+            let started = Instant::now();
+            let state = self.start_round(round, attempt);
+            let state = self.collect(state).await?;
+            let mut updates: Vec<(&str, u64, &UpdateReceived)> = state
+                .participants
+                .iter()
+                .filter_map(|(id, p)| Some((self.name_of(*id)?, *id, p.update.as_ref()?)))
+                .collect();
+            // Aggregation order follows the clients' names, so the sum does not depend on arrival or id order.
+            updates.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+            let version = self.c.global_version();
+            if updates.len() < self.c.config.min_fit {
+                tracing::warn!(round, attempt, updates = updates.len(), min_fit = self.c.config.min_fit, "round retried");
+                self.broadcast(ServerMessage::RoundClosed {
+                    round,
+                    accepted: false,
+                    model_version: version,
+                    updates: updates.len() as u32,
+                });
+                self.c.status_tx.send_modify(|s| s.retried_rounds += 1);
+                continue;
+            }
+            let inputs: Vec<(NamedTensors, u64)> = updates.iter().map(|(_, _, u)| (u.tensors.clone(), u.examples)).collect();
+            let accepted = updates.len() as u32;
+            self.aggregate(inputs).await?;
+            let metrics = if round % self.c.config.eval_every == 0 || round == self.c.config.num_server_rounds {
+                Some(self.evaluate(round).await?)
+            } else {
+                None
+            };
+            let clients = self.client_records(&state);
+            let seconds = started.elapsed().as_secs_f64();
+            self.persist(round, json!({ "attempt": attempt, "seconds": seconds, "clients": clients, "global": metrics }))
+                .await?;
+            self.broadcast(ServerMessage::RoundClosed { round, accepted: true, model_version: round, updates: accepted });
+            return Ok(());
+        }
+        unreachable!("attempts are unbounded")
+    }
+
+    fn name_of(&self, client_id: u64) -> Option<&str> {
+        self.clients.get(&client_id).map(|c| c.name.as_str())
+    }
+
+    async fn wait_for_clients(&mut self) -> Result<(), CoordinatorError> {
+        while self.clients.len() < self.c.config.min_clients {
+            let event = self.next_event().await?;
+            self.handle(event, None);
+        }
+        Ok(())
+    }
+
+    async fn next_event(&mut self) -> Result<Event, CoordinatorError> {
+        tokio::select! {
+            () = self.c.cancel.cancelled() => Err(CoordinatorError::Cancelled),
+            event = self.c.events.recv() => event.ok_or(CoordinatorError::Cancelled),
+        }
+    }
+
+    /// Samples clients and sends them their tasks.
+    fn start_round(&mut self, round: u64, attempt: u64) -> RoundState {
+        let cfg = &self.c.config;
+        let mut pool: Vec<(&str, u64)> = self.clients.iter().map(|(id, c)| (c.name.as_str(), *id)).collect();
+        pool.sort();
+        let n = pool.len();
+        let k = ((cfg.fraction_fit * n as f64).ceil() as usize).max(cfg.min_fit).min(n);
+        let mut rng = StdRng::seed_from_u64(mix(mix(cfg.seed, round), attempt));
+        let mut picked = rand::seq::index::sample(&mut rng, n, k).into_vec();
+        picked.sort_unstable();
+        let version = self.c.global_version();
+        let mut participants = BTreeMap::new();
+        for i in picked {
+            let (name, client_id) = pool[i];
+            let task = RoundTask {
+                round,
+                model_version: version,
+                local_steps: cfg.local_steps,
+                batch_size: cfg.batch_size,
+                lr: cfg.lr,
+                seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
+                strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
+                deadline_ms: cfg.round_deadline_ms,
+                eval_request: round % cfg.eval_every == 0,
+            };
+            self.clients[&client_id].outbox.send(ServerMessage::RoundTask(task)).ok();
+            participants.insert(client_id, Participant::default());
+        }
+        tracing::info!(round, attempt, sampled = k, connected = n, "round started");
+        RoundState { round, participants }
+    }
+
+    /// Handles events until every participant is done or the deadline passes.
+    async fn collect(&mut self, mut state: RoundState) -> Result<RoundState, CoordinatorError> {
+        let deadline = tokio::time::Instant::now() + Duration::from_millis(self.c.config.round_deadline_ms);
+        while !state.participants.values().all(|p| p.done) {
+            tokio::select! {
+                () = tokio::time::sleep_until(deadline) => {
+                    let late: Vec<u64> = state.participants.iter().filter(|(_, p)| !p.done).map(|(id, _)| *id).collect();
+                    tracing::warn!(round = state.round, ?late, "deadline passed");
+                    break;
+                }
+                event = self.next_event() => {
+                    let event = event?;
+                    self.handle(event, Some(&mut state));
+                }
+            }
+        }
+        Ok(state)
+    }
+
+    fn handle(&mut self, event: Event, round: Option<&mut RoundState>) {
+        let current = round.as_deref().map(|r| r.round);
+        let mut participants = round.map(|r| &mut r.participants);
+        // Each event concerns at most one participant, so the map is taken once.
+        let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
+        match event {
+            Event::Joined { client_id, name, capabilities, outbox } => {
+                tracing::debug!(client_id, ?capabilities, "registered");
+                self.clients.insert(client_id, ClientEntry { name, outbox });
+            }
+            Event::Left { client_id } => {
+                self.clients.remove(&client_id);
+                if let Some(p) = participant(client_id) {
+                    p.done = true;
+                }
+            }
+            Event::Update { client_id, update } => {
+                match participant(client_id) {
+                    Some(p) if Some(update.round) == current && p.update.is_none() => p.update = Some(*update),
+                    _ => {
+                        let message = format!("update for round {} is not expected (current round {current:?})", update.round);
+                        tracing::warn!(client_id, %message, "refused update");
+                        self.count(ErrorCode::StaleRound);
+                        if let Some(c) = self.clients.get(&client_id) {
+                            c.outbox.send(ServerMessage::Error { code: ErrorCode::StaleRound, message }).ok();
+                        }
+                    }
+                }
+            }
+            Event::Metrics { client_id, metrics } => {
+                if let Some(p) = participant(client_id).filter(|_| Some(metrics.round) == current) {
+                    p.metrics = Some(metrics);
+                    p.done = true;
+                }
+            }
+            Event::EvalResult { client_id, round: r, examples, loss } => {
+                if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
+                    p.eval = Some((examples, loss));
+                }
+            }
+            Event::Rejected { client_id, code } => {
+                self.count(code);
+                if let Some(p) = client_id.and_then(participant) {
+                    p.refused.push(code);
+                    p.done = true;
+                }
+            }
+        }
+        let connected = self.clients.len();
+        self.c.status_tx.send_if_modified(|s| std::mem::replace(&mut s.connected, connected) != connected);
+    }
+
+    fn count(&mut self, code: ErrorCode) {
+        *self.round_rejections.entry(code).or_default() += 1;
+        self.c.status_tx.send_modify(|s| *s.rejections.entry(code).or_default() += 1);
+    }
+
+    fn broadcast(&self, msg: ServerMessage) {
+        for client in self.clients.values() {
+            client.outbox.send(msg.clone()).ok();
+        }
+    }
+
+    fn client_records(&self, state: &RoundState) -> Vec<serde_json::Value> {
+        state
+            .participants
+            .iter()
+            .map(|(id, p)| {
+                json!({
+                    "client_id": id,
+                    "name": self.name_of(*id),
+                    "accepted": p.update.is_some(),
+                    "examples": p.update.as_ref().map(|u| u.examples),
+                    "train_loss": p.update.as_ref().map(|u| u.train_loss),
+                    "update_bytes": p.update.as_ref().map(|u| u.bytes),
+                    "seconds": p.metrics.as_ref().map(|m| m.seconds),
+                    "bytes_up": p.metrics.as_ref().map(|m| m.bytes_up),
+                    "bytes_down": p.metrics.as_ref().map(|m| m.bytes_down),
+                    "eval_examples": p.eval.map(|e| e.0),
+                    "eval_loss": p.eval.map(|e| e.1),
+                    "refused": p.refused.iter().map(|c| c.as_str()).collect::<Vec<_>>(),
+                })
+            })
+            .collect()
+    }
+
+    async fn aggregate(&mut self, updates: Vec<(NamedTensors, u64)>) -> Result<(), CoordinatorError> {
+        let strategy = Arc::clone(&self.c.strategy);
+        let global = Arc::clone(&self.c.global);
+        let result = blocking(move || strategy.lock().expect("strategy lock").aggregate(&global, &updates)).await;
+        self.c.global = Arc::new(result?);
+        Ok(())
+    }
+
+    async fn evaluate(&mut self, round: u64) -> Result<EvalMetrics, CoordinatorError> {
+        let evaluator = Arc::clone(&self.c.evaluator);
+        let global = Arc::clone(&self.c.global);
+        let result = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&global)).await;
+        let metrics = result.map_err(CoordinatorError::Evaluate)?;
+        tracing::info!(round, ?metrics, "global model evaluated");
+        Ok(metrics)
+    }
+
+    /// Saves the round's model, appends its metrics line, then publishes the model for download.
+    async fn persist(&mut self, round: u64, mut line: serde_json::Value) -> Result<(), CoordinatorError> {
+        let rejections: BTreeMap<&str, u64> =
+            std::mem::take(&mut self.round_rejections).into_iter().map(|(c, n)| (c.as_str(), n)).collect();
+        line["round"] = json!(round);
+        line["model_version"] = json!(round);
+        line["rejections"] = json!(rejections);
+        line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
+        let (run_dir, exporters, global) = (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global));
+        let bytes = blocking(move || -> Result<Vec<u8>, RunDirError> {
+            run_dir.save_model(round, &global, &exporters)?;
+            run_dir.append_metrics(&line)?;
+            global.to_safetensors().map_err(|source| RunDirError::Model { round, source })
+        })
+        .await?;
+        self.c.model_tx.send_replace(Arc::new(PublishedModel { version: round, safetensors: Bytes::from(bytes) }));
+        self.c.completed = Some(round);
+        self.c.status_tx.send_modify(|s| s.completed_rounds = round);
+        tracing::info!(round, "round completed");
+        Ok(())
+    }
+}
+
+impl Coordinator {
+    /// The model version clients train from: the last completed round.
+    fn global_version(&self) -> u64 {
+        self.completed.unwrap_or(0)
+    }
+}
+
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+    match tokio::task::spawn_blocking(f).await {
+        Ok(out) => out,
+        Err(e) => std::panic::resume_unwind(e.into_panic()),
+    }
+}
+
+/// splitmix64 of `a` combined with `b`: seeds derived per round, attempt and client.
+fn mix(a: u64, b: u64) -> u64 {
+    let mut z = a ^ b.wrapping_add(0x9e37_79b9_7f4a_7c15).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+fn fnv1a(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+}

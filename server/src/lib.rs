@@ -1,0 +1,12 @@
+//! The federation server (axum), the native client transport and the synthetic workload used until the
+//! SmolVLA trainer lands. The `fedvla` binary (src/main.rs, src/cmd/) is a thin layer over this library.
+
+pub mod app;
+pub mod config;
+pub mod connection;
+pub mod coordinator;
+pub mod error;
+pub mod linreg;
+pub mod native_client;
+pub mod run_dir;
+pub mod server;

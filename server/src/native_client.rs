@@ -1,0 +1,77 @@
+//! The native client transport: tokio-tungstenite for the WebSocket, a plain HTTP/1.1 GET (hyper) for models.
+
+use std::time::Instant;
+
+use fedvla_federation::{BoxError, ClientTransport};
+use futures_util::{SinkExt, StreamExt};
+use http_body_util::{BodyExt, Empty};
+use hyper::body::Bytes;
+use hyper_util::rt::TokioIo;
+use tokio::net::TcpStream;
+use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::tungstenite::http::Uri;
+use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
+
+pub struct NativeTransport {
+    ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
+    authority: String,
+    started: Instant,
+}
+
+impl NativeTransport {
+    /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored).
+    pub async fn connect(server: &str) -> Result<Self, BoxError> {
+        let uri: Uri = if server.contains("://") { server.parse()? } else { format!("ws://{server}").parse()? };
+        if !matches!(uri.scheme_str(), Some("ws" | "http")) {
+            return Err(format!("unsupported scheme in `{server}`: use ws:// or http:// (TLS is left to a proxy)").into());
+        }
+        let authority = uri.authority().ok_or_else(|| format!("no host in `{server}`"))?.to_string();
+        // Nagle off: an update is a small header message followed at once by frames.
+        let (ws, _) = tokio_tungstenite::connect_async_with_config(format!("ws://{authority}/ws"), None, true).await?;
+        Ok(Self { ws, authority, started: Instant::now() })
+    }
+}
+
+impl ClientTransport for NativeTransport {
+    async fn send_text(&mut self, text: String) -> Result<(), BoxError> {
+        Ok(self.ws.send(Message::text(text)).await?)
+    }
+
+    async fn send_binary(&mut self, frame: Vec<u8>) -> Result<(), BoxError> {
+        Ok(self.ws.send(Message::binary(frame)).await?)
+    }
+
+    async fn recv_text(&mut self) -> Result<Option<String>, BoxError> {
+        loop {
+            match self.ws.next().await {
+                Some(Ok(Message::Text(text))) => return Ok(Some(text.as_str().to_owned())),
+                Some(Ok(Message::Close(_))) | None => return Ok(None),
+                Some(Ok(Message::Binary(_))) => return Err("the server sent an unexpected binary frame".into()),
+                Some(Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_))) => {}
+                Some(Err(e)) => return Err(e.into()),
+            }
+        }
+    }
+
+    async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
+        let stream = TcpStream::connect(&self.authority).await?;
+        let (mut sender, conn) = hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
+        let conn = tokio::spawn(conn);
+        let request = hyper::Request::get(format!("/model/{version}"))
+            .header(hyper::header::HOST, &self.authority)
+            .body(Empty::<Bytes>::new())?;
+        let response = sender.send_request(request).await?;
+        let status = response.status();
+        let body = response.into_body().collect().await?.to_bytes();
+        drop(sender);
+        conn.await??;
+        if !status.is_success() {
+            return Err(format!("GET /model/{version}: {status}: {}", String::from_utf8_lossy(&body)).into());
+        }
+        Ok(body.to_vec())
+    }
+
+    fn now_seconds(&self) -> f64 {
+        self.started.elapsed().as_secs_f64()
+    }
+}

@@ -1,0 +1,208 @@
+//! `outputs/<date_time>/`: resolved config, per-round metrics, global models. Crash-safe writes: files are
+//! written to a temporary name and renamed; metrics lines are appended and synced once per round.
+
+use std::fs::{self, File, OpenOptions};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use fedvla_federation::{BoxError, NamedTensors, TensorError};
+
+use crate::config::{ConfigError, RunConfig};
+
+pub const CONFIG_FILE: &str = "config.toml";
+pub const METRICS_FILE: &str = "metrics.jsonl";
+pub const MODELS_DIR: &str = "global_model";
+pub const LOG_FILE: &str = "server.log";
+/// The trainable tensors of each round; resume reads it back.
+pub const TRAINABLE_FILE: &str = "trainable.safetensors";
+
+#[derive(Debug, thiserror::Error)]
+pub enum RunDirError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("{path} line {line}: {message}")]
+    Metrics { path: PathBuf, line: usize, message: String },
+    #[error("global model of round {round}: {source}")]
+    Model { round: u64, source: TensorError },
+    #[error("exporting round {round}: {source}")]
+    Export { round: u64, source: BoxError },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunDirError + '_ {
+    move |source| RunDirError::Io { path: path.to_owned(), source }
+}
+
+/// Writes one round's global model into a fresh directory. The LeRobot policy export plugs in here.
+pub trait ModelExporter: Send + Sync {
+    fn export(&self, round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError>;
+}
+
+/// Writes the trainable tensors as `trainable.safetensors` (always on: resume needs it).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct TrainableSafetensors;
+
+impl ModelExporter for TrainableSafetensors {
+    fn export(&self, _round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError> {
+        fs::write(dir.join(TRAINABLE_FILE), global.to_safetensors()?)?;
+        Ok(())
+    }
+}
+
+/// One run's output directory.
+#[derive(Debug, Clone)]
+pub struct RunDir {
+    path: PathBuf,
+}
+
+impl RunDir {
+    /// Creates `<base>/<date_time>/` (suffixed if taken) and writes the resolved config.
+    pub fn create(base: &Path, config: &RunConfig) -> Result<Self, RunDirError> {
+        fs::create_dir_all(base).map_err(io(base))?;
+        let stamp = chrono::Local::now().format("%Y-%m-%d_%H-%M-%S").to_string();
+        let mut path = base.join(&stamp);
+        let mut n = 1;
+        while path.exists() {
+            path = base.join(format!("{stamp}_{n}"));
+            n += 1;
+        }
+        fs::create_dir(&path).map_err(io(&path))?;
+        let dir = Self { path };
+        dir.write_config(config)?;
+        Ok(dir)
+    }
+
+    /// Opens an existing run for `--resume`, with the config it was started with.
+    pub fn open(path: &Path) -> Result<(Self, RunConfig), RunDirError> {
+        let config = RunConfig::load(&path.join(CONFIG_FILE))?;
+        Ok((Self { path: path.to_owned() }, config))
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn write_config(&self, config: &RunConfig) -> Result<(), RunDirError> {
+        write_atomic(&self.path.join(CONFIG_FILE), config.to_toml().as_bytes())
+    }
+
+    /// The last round with a metrics line, dropping a torn last line left by a crash mid-write.
+    pub fn last_completed_round(&self) -> Result<Option<u64>, RunDirError> {
+        let path = self.path.join(METRICS_FILE);
+        let text = match fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(io(&path)(e)),
+        };
+        let complete = &text[..text.rfind('\n').map_or(0, |i| i + 1)];
+        if complete.len() != text.len() {
+            tracing::warn!(path = %path.display(), "dropping a torn last metrics line");
+            write_atomic(&path, complete.as_bytes())?;
+        }
+        let mut last = None;
+        for (i, line) in complete.lines().enumerate() {
+            let err = |message: String| RunDirError::Metrics { path: path.clone(), line: i + 1, message };
+            let value: serde_json::Value = serde_json::from_str(line).map_err(|e| err(e.to_string()))?;
+            let round = value["round"].as_u64().ok_or_else(|| err("no `round`".into()))?;
+            if last.is_some_and(|l| round != l + 1) || (last.is_none() && round != 0) {
+                return Err(err(format!("round {round} does not follow round {last:?}")));
+            }
+            last = Some(round);
+        }
+        Ok(last)
+    }
+
+    /// Appends one round's metrics line and syncs it to disk.
+    pub fn append_metrics(&self, line: &serde_json::Value) -> Result<(), RunDirError> {
+        let path = self.path.join(METRICS_FILE);
+        let mut file = OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
+        let mut text = serde_json::to_string(line).expect("metrics serialize");
+        text.push('\n');
+        file.write_all(text.as_bytes()).map_err(io(&path))?;
+        file.sync_data().map_err(io(&path))
+    }
+
+    pub fn model_dir(&self, round: u64) -> PathBuf {
+        self.path.join(MODELS_DIR).join(format!("round_{round}"))
+    }
+
+    /// Writes `global_model/round_N/` through every exporter into a temporary directory, then renames it.
+    pub fn save_model(
+        &self,
+        round: u64,
+        global: &NamedTensors,
+        exporters: &[Box<dyn ModelExporter>],
+    ) -> Result<(), RunDirError> {
+        let dir = self.model_dir(round);
+        let tmp = dir.with_extension("tmp");
+        if tmp.exists() {
+            fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
+        }
+        fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        for exporter in exporters {
+            exporter.export(round, global, &tmp).map_err(|source| RunDirError::Export { round, source })?;
+        }
+        if dir.exists() {
+            // Left by a run that crashed after saving but before its metrics line: this round is being redone.
+            fs::remove_dir_all(&dir).map_err(io(&dir))?;
+        }
+        fs::rename(&tmp, &dir).map_err(io(&dir))
+    }
+
+    pub fn load_model(&self, round: u64) -> Result<NamedTensors, RunDirError> {
+        let path = self.model_dir(round).join(TRAINABLE_FILE);
+        let bytes = fs::read(&path).map_err(io(&path))?;
+        NamedTensors::from_safetensors(&bytes).map_err(|source| RunDirError::Model { round, source })
+    }
+
+    /// Opens `server.log` for appending.
+    pub fn log_file(&self) -> Result<File, RunDirError> {
+        let path = self.path.join(LOG_FILE);
+        OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))
+    }
+}
+
+/// Writes `bytes` to `path` via a temporary file and a rename.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunDirError> {
+    let tmp = path.with_extension("tmp");
+    let mut file = File::create(&tmp).map_err(io(&tmp))?;
+    file.write_all(bytes).map_err(io(&tmp))?;
+    file.sync_all().map_err(io(&tmp))?;
+    fs::rename(&tmp, path).map_err(io(path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_resume_point_and_torn_line() {
+        let base = tempfile::tempdir().unwrap();
+        let dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
+        assert_eq!(dir.last_completed_round().unwrap(), None);
+        dir.append_metrics(&serde_json::json!({"round": 0})).unwrap();
+        dir.append_metrics(&serde_json::json!({"round": 1})).unwrap();
+        let path = dir.path().join(METRICS_FILE);
+        let mut f = OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(b"{\"round\": 2, \"glo").unwrap();
+        assert_eq!(dir.last_completed_round().unwrap(), Some(1));
+        assert_eq!(fs::read_to_string(&path).unwrap().lines().count(), 2);
+        let (reopened, config) = RunDir::open(dir.path()).unwrap();
+        assert_eq!(config, RunConfig::default());
+        assert_eq!(reopened.last_completed_round().unwrap(), Some(1));
+    }
+
+    #[test]
+    fn models_are_saved_and_loaded() {
+        let base = tempfile::tempdir().unwrap();
+        let dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
+        let mut t = NamedTensors::new();
+        t.insert("w", vec![2], vec![1.0, 2.0]).unwrap();
+        let exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
+        dir.save_model(3, &t, &exporters).unwrap();
+        dir.save_model(3, &t, &exporters).unwrap();
+        assert_eq!(dir.load_model(3).unwrap(), t);
+        assert!(!dir.model_dir(3).with_extension("tmp").exists());
+    }
+}

@@ -1,0 +1,147 @@
+//! Starting and stopping a server: the HTTP/WebSocket listener plus the coordinator task.
+
+use std::net::SocketAddr;
+use std::sync::atomic::AtomicU64;
+use std::sync::{Arc, Mutex};
+
+use axum::body::Bytes;
+use axum::serve::ListenerExt;
+use fedvla_federation::{Evaluator, NamedTensors, Strategy, TensorError, UpdateLimits};
+use tokio::net::TcpListener;
+use tokio::sync::{mpsc, watch};
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+use crate::app::{AppState, PublishedModel, app};
+use crate::config::RunConfig;
+use crate::coordinator::{Coordinator, CoordinatorError, RunStatus};
+use crate::run_dir::{ModelExporter, RunDir, RunDirError, TrainableSafetensors};
+
+/// Headroom over the exact update size before an update counts as oversized.
+const UPDATE_HEADROOM_BYTES: u64 = 64 * 1024;
+
+/// What a server is made of. The workload (policy or linreg) supplies the initial model and the evaluator.
+pub struct ServerParts {
+    pub config: RunConfig,
+    pub run_dir: RunDir,
+    /// The initial global trainable tensors (ignored when the run directory already has completed rounds).
+    pub initial: NamedTensors,
+    pub strategy: Box<dyn Strategy + Send>,
+    pub evaluator: Box<dyn Evaluator + Send>,
+    /// Extra exporters run after `trainable.safetensors` is written (e.g. the LeRobot policy directory).
+    pub exporters: Vec<Box<dyn ModelExporter>>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error(transparent)]
+    RunDir(#[from] RunDirError),
+    #[error("the saved model does not match the workload's trainable tensors: {0}")]
+    Spec(TensorError),
+    #[error("listener: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// A running server.
+pub struct ServerHandle {
+    addr: SocketAddr,
+    cancel: CancellationToken,
+    status: watch::Receiver<RunStatus>,
+    coordinator: JoinHandle<Result<RunStatus, CoordinatorError>>,
+    http: JoinHandle<std::io::Result<()>>,
+}
+
+/// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
+pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, StartError> {
+    let ServerParts { config, run_dir, initial, strategy, evaluator, exporters } = parts;
+    let spec = Arc::new(initial.spec());
+    let completed = run_dir.last_completed_round()?;
+    let global = match completed {
+        Some(round) => {
+            let saved = run_dir.load_model(round)?;
+            saved.validate(&spec).map_err(StartError::Spec)?;
+            saved
+        }
+        None => initial,
+    };
+    let version = completed.unwrap_or(0);
+    let bytes = global.to_safetensors().map_err(StartError::Spec)?;
+    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel { version, safetensors: Bytes::from(bytes) }));
+    let (status_tx, status) =
+        watch::channel(RunStatus { completed_rounds: version, ..RunStatus::default() });
+    let (events_tx, events) = mpsc::channel(1024);
+    let cancel = CancellationToken::new();
+    let limits = UpdateLimits::for_spec(&spec, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
+    let state = AppState {
+        events: events_tx,
+        model: model_rx,
+        cancel: cancel.clone(),
+        spec,
+        limits,
+        auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
+        next_client_id: Arc::new(AtomicU64::new(1)),
+    };
+    let mut all_exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
+    all_exporters.extend(exporters);
+    let coordinator = Coordinator {
+        config,
+        events,
+        cancel: cancel.clone(),
+        strategy: Arc::new(Mutex::new(strategy)),
+        evaluator: Arc::new(Mutex::new(evaluator)),
+        exporters: Arc::new(all_exporters),
+        run_dir,
+        global: Arc::new(global),
+        completed,
+        model_tx,
+        status_tx,
+    };
+    let addr = listener.local_addr()?;
+    let coordinator = tokio::spawn(coordinator.run());
+    let shutdown = cancel.clone();
+    let http = tokio::spawn(async move {
+        let listener = listener.tap_io(|tcp| {
+            if let Err(e) = tcp.set_nodelay(true) {
+                tracing::debug!(error = %e, "TCP_NODELAY not set");
+            }
+        });
+        axum::serve(listener, app(state)).with_graceful_shutdown(shutdown.cancelled_owned()).await
+    });
+    tracing::info!(%addr, "listening");
+    Ok(ServerHandle { addr, cancel, status, coordinator, http })
+}
+
+impl ServerHandle {
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    pub fn status(&self) -> watch::Receiver<RunStatus> {
+        self.status.clone()
+    }
+
+    /// A token that, when cancelled, stops the run and closes every socket.
+    pub fn cancel_token(&self) -> CancellationToken {
+        self.cancel.clone()
+    }
+
+    /// Waits for the run to finish (or be cancelled), then shuts down gracefully.
+    pub async fn finish(self) -> Result<RunStatus, CoordinatorError> {
+        let result = match self.coordinator.await {
+            Ok(result) => result,
+            Err(e) => std::panic::resume_unwind(e.into_panic()),
+        };
+        self.cancel.cancel();
+        if let Ok(Err(e)) = self.http.await {
+            tracing::warn!(error = %e, "http server error");
+        }
+        result
+    }
+
+    /// Stops abruptly, as a crash would: tasks aborted mid-round, sockets dropped.
+    pub fn kill(self) {
+        self.coordinator.abort();
+        self.http.abort();
+        self.cancel.cancel();
+    }
+}

@@ -16,3 +16,9 @@ pub mod render;
 
 pub use camera::Camera;
 pub use render::render;
+pub mod episode;
+pub mod expert;
+pub mod ik;
+
+pub use episode::{EpisodeOutcome, run_expert_episode};
+pub use expert::Expert;

@@ -5,15 +5,23 @@
 //! The arm links are kinematic bodies posed by forward kinematics of the servo positions: the
 //! real arm is position-controlled and its servos hold a pose against the light loads of this
 //! task, so the servo model (speed limit, gripper stall) decides where the links are and the
-//! physics decides what the cube does. The cube is a dynamic body held by friction alone.
+//! physics decides what the cube does.
+//!
+//! Grasping: the closing jaw presses the cube onto the fixed finger until the gripper servo
+//! stalls. A real STS3215 grips with tens of newtons against the cube's 0.08 N weight, so
+//! static friction never slips; rapier's velocity-level solver cannot hold a body squeezed
+//! between two kinematic bodies steadily, so that static friction is modelled as a fixed
+//! joint between gripper and cube that exists only while both fingers press on it. The cube
+//! stays a dynamic body throughout (it hits the bowl, and falls when the jaw opens).
 
-use crate::arm::{self, GRIPPER, JAW_LINK, JOINT_COUNT, LINK_COUNT};
+use crate::arm::{self, GRIPPER, GRIPPER_LINK, JAW_LINK, JOINT_COUNT, LINK_COUNT};
 use crate::servo::{ARM_MAX_SPEED, GRIPPER_MAX_SPEED, Servo};
 use crate::shape::{Part, Rgb};
 use crate::task::{self, BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, Layout};
 use rapier3d::math::{Pose, Rot3, Vec3};
 use rapier3d::prelude::{
-    ColliderHandle, PhysicsWorld, RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
+    ColliderHandle, ContactPair, FixedJointBuilder, ImpulseJointHandle, PhysicsWorld, RigidBodyBuilder,
+    RigidBodyHandle, RigidBodyType,
 };
 use std::f32::consts::FRAC_PI_2;
 
@@ -27,6 +35,8 @@ pub const SUBSTEPS: u32 = 8;
 pub const GRIP_SQUEEZE: f32 = 0.0015;
 /// Jaw angle above which the gripper counts as released, radians (opening past the cube).
 pub const GRIPPER_RELEASED: f32 = 0.3;
+/// Gap under which a finger counts as touching the cube, metres.
+const TOUCHING: f32 = 0.001;
 
 /// Starting pose of the arm, radians: the published model's "home" keyframe (upper arm up,
 /// forearm forward, gripper pointing down), jaw slightly open.
@@ -57,6 +67,9 @@ pub struct Scene {
     links: [RigidBodyHandle; LINK_COUNT],
     arm_colliders: Vec<ColliderHandle>,
     jaw_colliders: Vec<ColliderHandle>,
+    finger_colliders: Vec<ColliderHandle>,
+    /// The static-friction hold on the cube while it is gripped.
+    grip: Option<ImpulseJointHandle>,
     cube: RigidBodyHandle,
     cube_collider: ColliderHandle,
     servos: [Servo; JOINT_COUNT],
@@ -71,6 +84,12 @@ impl Scene {
         let mut world = PhysicsWorld::new();
         world.gravity = Vec3::new(0.0, 0.0, -9.81);
         world.integration_parameters.dt = 1.0 / (FPS * SUBSTEPS) as f32;
+        // Grasp forces come from penetration depths: keep contacts exact, not recycled.
+        world.integration_parameters.contact_recycling = false;
+        // Objects here are centimetres across: scale rapier's tolerances (allowed penetration,
+        // corrective speed) down from their metre-sized defaults, or a squeeze of a few
+        // millimetres would fall inside the allowed error and produce no grip force.
+        world.integration_parameters.length_unit = 0.1;
         let mut visuals = Vec::new();
 
         let table_parts = vec![Part::cuboid(
@@ -96,6 +115,7 @@ impl Scene {
         let link_poses = arm::forward_kinematics(base, &HOME);
         let mut arm_colliders = Vec::new();
         let mut jaw_colliders = Vec::new();
+        let mut finger_colliders = Vec::new();
         let links = {
             let parts = arm::link_parts();
             let mut handles = Vec::with_capacity(LINK_COUNT);
@@ -110,6 +130,9 @@ impl Scene {
                 let (handle, colliders) = add_body(&mut world, &mut visuals, builder, parts, 1.0);
                 if i == JAW_LINK {
                     jaw_colliders.extend(&colliders);
+                }
+                if i == GRIPPER_LINK {
+                    finger_colliders.extend(&colliders);
                 }
                 arm_colliders.extend(colliders);
                 handles.push(handle);
@@ -126,6 +149,8 @@ impl Scene {
             links,
             arm_colliders,
             jaw_colliders,
+            finger_colliders,
+            grip: None,
             cube,
             cube_collider: cube_colliders[0],
             servos,
@@ -144,7 +169,9 @@ impl Scene {
         }
         let dt = self.world.integration_parameters.dt;
         for _ in 0..SUBSTEPS {
-            let jaw_stall = (self.jaw_penetration() > GRIP_SQUEEZE).then_some(-1.0);
+            let jaw_penetration = self.jaw_penetration();
+            self.update_grip(jaw_penetration);
+            let jaw_stall = (jaw_penetration > GRIP_SQUEEZE).then_some(-1.0);
             for (i, servo) in self.servos.iter_mut().enumerate() {
                 servo.advance(dt, if i == GRIPPER { jaw_stall } else { None });
             }
@@ -211,22 +238,51 @@ impl Scene {
 
     /// Whether any arm collider is in contact with the cube.
     pub fn arm_touches_cube(&self) -> bool {
-        self.arm_colliders.iter().any(|&collider| {
-            self.world
-                .narrow_phase
-                .contact_pair(collider, self.cube_collider)
-                .is_some_and(|pair| pair.has_any_active_contact())
-        })
+        self.cube_contacts(&self.arm_colliders).any(|pair| pair.has_any_active_contact())
+    }
+
+    /// Whether the cube is held by the gripper (see the module notes on grasping).
+    pub fn cube_gripped(&self) -> bool {
+        self.grip.is_some()
+    }
+
+    /// Starts holding the cube when the jaw presses it onto the fixed finger, and lets go
+    /// once the jaw opens off it.
+    fn update_grip(&mut self, jaw_penetration: f32) {
+        match self.grip {
+            None if jaw_penetration > GRIP_SQUEEZE && self.deepest_contact(&self.finger_colliders) > -TOUCHING => {
+                let gripper = self.links[GRIPPER_LINK];
+                let relative = self.world.bodies[gripper].position().inv_mul(&self.cube_pose());
+                let hold = FixedJointBuilder::new().local_frame1(relative).local_frame2(Pose::IDENTITY);
+                self.grip = Some(self.world.impulse_joints.insert(gripper, self.cube, hold, true));
+            }
+            Some(hold) if jaw_penetration < GRIP_SQUEEZE * 0.5 => {
+                self.world.impulse_joints.remove(hold, true);
+                self.grip = None;
+            }
+            _ => {}
+        }
     }
 
     /// Deepest penetration of the moving jaw into the cube, metres (0 when apart).
     fn jaw_penetration(&self) -> f32 {
-        self.jaw_colliders
-            .iter()
-            .filter_map(|&collider| self.world.narrow_phase.contact_pair(collider, self.cube_collider))
+        self.deepest_contact(&self.jaw_colliders).max(0.0)
+    }
+
+    /// Largest penetration (negative: gap) between the cube and any of `colliders`, metres;
+    /// minus infinity when none is near.
+    fn deepest_contact(&self, colliders: &[ColliderHandle]) -> f32 {
+        self.cube_contacts(colliders)
             .filter_map(|pair| pair.find_deepest_contact())
             .map(|(_, contact)| -contact.dist)
-            .fold(0.0, f32::max)
+            .fold(f32::NEG_INFINITY, f32::max)
+    }
+
+    /// Contact pairs between the cube and any of `colliders`.
+    fn cube_contacts<'a>(&'a self, colliders: &'a [ColliderHandle]) -> impl Iterator<Item = &'a ContactPair> {
+        self.world.narrow_phase.contact_pairs_with(self.cube_collider).filter(move |pair| {
+            colliders.contains(&pair.collider1) || colliders.contains(&pair.collider2)
+        })
     }
 }
 

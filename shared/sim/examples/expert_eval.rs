@@ -1,0 +1,22 @@
+//! Success rate of the scripted expert over seeds 0..N:
+//! `cargo run --release -p fedvla-sim --example expert_eval -- N`.
+use fedvla_sim::run_expert_episode;
+
+fn main() {
+    let episodes: u64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(100);
+    let mut successes = 0;
+    let mut frames = 0;
+    for seed in 0..episodes {
+        let outcome = run_expert_episode(seed, 400);
+        successes += u32::from(outcome.success);
+        frames += outcome.frames;
+        if !outcome.success {
+            println!("seed {seed}: failed, cube ended at {:?}", outcome.final_cube_position);
+        }
+    }
+    println!(
+        "expert success {successes}/{episodes} ({:.1}%), mean episode {:.0} frames",
+        100.0 * successes as f64 / episodes as f64,
+        frames as f64 / episodes as f64
+    );
+}

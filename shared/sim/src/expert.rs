@@ -37,6 +37,12 @@ struct Waypoint {
     frames: u32,
 }
 
+/// Index of the waypoint that ends the lift: if the cube is not held by then, the grasp
+/// missed and the expert plans again from where things are.
+const LIFTED: usize = 4;
+/// How many times a missed grasp is tried again.
+const MAX_RETRIES: u32 = 2;
+
 /// Scripted expert for one episode; plans from the scene it is created with.
 #[derive(Clone, Debug)]
 pub struct Expert {
@@ -45,58 +51,25 @@ pub struct Expert {
     waypoints: Vec<Waypoint>,
     frame: u32,
     joints: [f32; JOINT_COUNT],
+    retries: u32,
 }
 
 impl Expert {
     /// Plans the demonstration from the current arm pose and the cube and bowl positions.
     pub fn new(scene: &Scene) -> Self {
-        let base = scene.base_pose();
         let joints = scene.joint_positions();
         let grasp_point = arm::grasp_point(CUBE_HALF + FINGER_CLEARANCE);
-        let links = arm::forward_kinematics(base, &joints);
-        let gripper = links[GRIPPER_LINK];
-        let pan_axis = links[1].translation;
-        let start_yaw = yaw_of(gripper.rotation * Vec3::X);
-
-        let cube = scene.cube_pose();
-        let cube_yaw = yaw_of(cube.rotation * Vec3::X);
-        let bowl = scene.layout().bowl_position;
-        // The jaw's closing direction when the arm turns to face a point without rolling the
-        // wrist; the grasp picks the cube face nearest to it to keep the roll small.
-        let facing = |p: Vec3| start_yaw - joints[0] + (p.x - pan_axis.x).atan2(pan_axis.y - p.y);
-        let natural = facing(cube.translation);
-        let grasp_yaw = (0..4)
-            .map(|k| cube_yaw + k as f32 * FRAC_PI_2)
-            .min_by(|a, b| angle_between(*a, natural).total_cmp(&angle_between(*b, natural)))
-            .unwrap_or(natural);
-        let release_yaw = grasp_yaw - natural + facing(bowl);
-        let grasp_z = cube.translation.z + GRASP_ABOVE_CENTER;
-        let over = |p: Vec3, z: f32| Vec3::new(p.x, p.y, z);
-
-        let start = Waypoint {
-            position: gripper.transform_point(grasp_point),
-            closing_yaw: start_yaw,
-            gripper: arm::to_robot_units(&joints)[GRIPPER],
-            frames: 0,
-        };
-        let at = |position, closing_yaw, gripper, frames| Waypoint { position, closing_yaw, gripper, frames };
-        let waypoints = vec![
-            start,
-            at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_OPEN, 45),
-            at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_OPEN, 30),
-            at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_CLOSED, 18),
-            at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_CLOSED, 25),
-            at(over(bowl, HOVER_HEIGHT), release_yaw, GRIPPER_CLOSED, 40),
-            at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_CLOSED, 18),
-            at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_OPEN, 12),
-            at(over(bowl, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 20),
-            // Hold still while the cube settles.
-            at(over(bowl, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 6),
-        ];
-        Self { base, grasp_point, waypoints, frame: 0, joints }
+        Self {
+            base: scene.base_pose(),
+            grasp_point,
+            waypoints: plan(scene, &joints, grasp_point),
+            frame: 0,
+            joints,
+            retries: 0,
+        }
     }
 
-    /// Frames the whole demonstration takes.
+    /// Frames the whole demonstration takes (as planned now; a retry adds a new plan).
     pub fn planned_frames(&self) -> u32 {
         self.waypoints.iter().map(|w| w.frames).sum()
     }
@@ -107,8 +80,15 @@ impl Expert {
     }
 
     /// The next action, in robot units (degrees, gripper 0..100): goal positions for this
-    /// control frame. After the end of the plan it keeps holding the final pose.
-    pub fn act(&mut self, _scene: &Scene) -> [f32; JOINT_COUNT] {
+    /// control frame. Watches `scene` for a missed grasp; after the end of the plan it keeps
+    /// holding the final pose.
+    pub fn act(&mut self, scene: &Scene) -> [f32; JOINT_COUNT] {
+        let lifted_at: u32 = self.waypoints[..=LIFTED].iter().map(|w| w.frames).sum();
+        if self.frame == lifted_at && !scene.cube_gripped() && self.retries < MAX_RETRIES {
+            self.retries += 1;
+            self.waypoints = plan(scene, &self.joints, self.grasp_point);
+            self.frame = 0;
+        }
         self.frame = (self.frame + 1).min(self.planned_frames());
         let waypoint = self.waypoint_at(self.frame);
         let target = GripperTarget {
@@ -142,6 +122,52 @@ impl Expert {
         self.waypoints[self.waypoints.len() - 1]
     }
 }
+
+/// Waypoints from the arm at `joints` (radians) to the cube in the bowl, for the grasp point
+/// `grasp_point` (gripper frame).
+fn plan(scene: &Scene, joints: &[f32; JOINT_COUNT], grasp_point: Vec3) -> Vec<Waypoint> {
+    let links = arm::forward_kinematics(scene.base_pose(), joints);
+    let gripper = links[GRIPPER_LINK];
+    let pan_axis = links[1].translation;
+    let start_yaw = yaw_of(gripper.rotation * Vec3::X);
+
+    let cube = scene.cube_pose();
+    let cube_yaw = yaw_of(cube.rotation * Vec3::X);
+    let bowl = scene.layout().bowl_position;
+    // The jaw's closing direction when the arm turns to face a point without rolling the
+    // wrist; the grasp picks the cube face nearest to it to keep the roll small.
+    let facing = |p: Vec3| start_yaw - joints[0] + (p.x - pan_axis.x).atan2(pan_axis.y - p.y);
+    let natural = facing(cube.translation);
+    let grasp_yaw = (0..4)
+        .map(|k| cube_yaw + k as f32 * FRAC_PI_2)
+        .min_by(|a, b| angle_between(*a, natural).total_cmp(&angle_between(*b, natural)))
+        .unwrap_or(natural);
+    let release_yaw = grasp_yaw - natural + facing(bowl);
+    let grasp_z = cube.translation.z + GRASP_ABOVE_CENTER;
+    let over = |p: Vec3, z: f32| Vec3::new(p.x, p.y, z);
+
+    let start = Waypoint {
+        position: gripper.transform_point(grasp_point),
+        closing_yaw: start_yaw,
+        gripper: scene.state()[GRIPPER],
+        frames: 0,
+    };
+    let at = |position, closing_yaw, gripper, frames| Waypoint { position, closing_yaw, gripper, frames };
+    vec![
+        start,
+        at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_OPEN, 45),
+        at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_OPEN, 30),
+        at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_CLOSED, 18),
+        at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_CLOSED, 25),
+        at(over(bowl, HOVER_HEIGHT), release_yaw, GRIPPER_CLOSED, 40),
+        at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_CLOSED, 18),
+        at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_OPEN, 12),
+        at(over(bowl, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 20),
+        // Hold still while the cube settles.
+        at(over(bowl, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 6),
+    ]
+}
+
 
 /// Gripper orientation with the fingers pointing straight down and the jaw closing along
 /// `closing_yaw` (gripper frame: x closes the jaw, fingers along -y).

@@ -1,0 +1,44 @@
+//! The scripted expert solves the task, within the joint limits, deterministically.
+
+use fedvla_sim::arm::{self, JOINT_COUNT};
+use fedvla_sim::run_expert_episode;
+
+const MAX_FRAMES: u32 = 400;
+
+#[test]
+fn expert_puts_the_cube_in_the_bowl_in_at_least_18_of_20_seeds() {
+    let outcomes: Vec<_> = (0..20).map(|seed| run_expert_episode(seed, MAX_FRAMES)).collect();
+    let successes = outcomes.iter().filter(|o| o.success).count();
+    let failed: Vec<_> = outcomes.iter().enumerate().filter(|(_, o)| !o.success).map(|(seed, _)| seed).collect();
+    assert!(successes >= 18, "{successes}/20 succeeded; failed seeds {failed:?}");
+    for (seed, outcome) in outcomes.iter().enumerate() {
+        assert!((150..=250).contains(&outcome.frames), "seed {seed}: {} frames", outcome.frames);
+    }
+}
+
+#[test]
+fn states_and_actions_stay_within_joint_limits() {
+    let joints = arm::joints();
+    for seed in [0, 1, 2] {
+        let outcome = run_expert_episode(seed, MAX_FRAMES);
+        for (frame, (state, action)) in outcome.states.iter().zip(&outcome.actions).enumerate() {
+            let (state, action) = (arm::from_robot_units(state), arm::from_robot_units(action));
+            for i in 0..JOINT_COUNT {
+                let (lower, upper) = (joints[i].lower - 1e-4, joints[i].upper + 1e-4);
+                assert!((lower..=upper).contains(&state[i]), "seed {seed} frame {frame} joint {i}: {}", state[i]);
+                assert!((lower..=upper).contains(&action[i]), "seed {seed} frame {frame} joint {i}: {}", action[i]);
+            }
+            let units = fedvla_sim::arm::to_robot_units(&state);
+            assert!((0.0..=100.0).contains(&units[arm::GRIPPER]), "gripper {}", units[arm::GRIPPER]);
+        }
+    }
+}
+
+#[test]
+fn same_seed_gives_identical_trajectory() {
+    let first = run_expert_episode(5, MAX_FRAMES);
+    let second = run_expert_episode(5, MAX_FRAMES);
+    assert_eq!(first, second);
+    let other = run_expert_episode(6, MAX_FRAMES);
+    assert_ne!(first.states, other.states);
+}

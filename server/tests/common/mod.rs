@@ -1,0 +1,208 @@
+//! Helpers for the loopback tests: a server on 127.0.0.1:0 with the linreg workload, native clients, raw
+//! WebSocket clients that misbehave on purpose, and an independent reading of the run directory.
+
+#![allow(dead_code)] // each test binary uses its own subset
+
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use fedvla_federation::{
+    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, FedAvg,
+    LocalTrainer, NamedTensors, PROTOCOL_VERSION, RoundTask, ServerMessage, TrainOutput, run_client,
+};
+use fedvla_server::config::{Partitioning, RunConfig};
+use fedvla_server::coordinator::RunStatus;
+use fedvla_server::linreg::{self, LinRegEvaluator, LinRegTrainer};
+use fedvla_server::native_client::NativeTransport;
+use fedvla_server::run_dir::{METRICS_FILE, RunDir};
+use fedvla_server::server::{self, ServerHandle, ServerParts};
+use futures_util::{SinkExt, StreamExt};
+use tokio::net::TcpStream;
+use tokio::task::JoinHandle;
+use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
+
+/// Small, fast defaults; `overrides` as on the command line.
+pub fn config(overrides: &str) -> RunConfig {
+    RunConfig::default()
+        .with_overrides(&format!(
+            "num-server-rounds=2 min-clients=3 min-fit=3 fraction-fit=1.0 local-steps=30 batch-size=8 \
+             lr=0.05 round-deadline-ms=10000 max-frame-bytes=64 {overrides}"
+        ))
+        .expect("test config is valid")
+}
+
+pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
+    let parts = ServerParts {
+        initial: linreg::initial_model(config.seed),
+        config,
+        run_dir,
+        strategy: Box::new(FedAvg),
+        evaluator: Box::new(LinRegEvaluator::default()),
+        exporters: Vec::new(),
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    server::start(parts, listener).unwrap()
+}
+
+/// Waits (at most 20 s) until the status satisfies `pred`.
+pub async fn wait_status(handle: &ServerHandle, pred: impl Fn(&RunStatus) -> bool) -> RunStatus {
+    let mut rx = handle.status();
+    let status = tokio::time::timeout(Duration::from_secs(20), rx.wait_for(|s| pred(s)))
+        .await
+        .expect("status condition within 20 s")
+        .expect("server alive");
+    status.clone()
+}
+
+/// Every update a client produced, by round.
+pub type Recorded = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
+
+/// The linreg trainer, recording its outputs and optionally hanging (a straggler) from some round on.
+pub struct TestTrainer {
+    inner: LinRegTrainer,
+    recorded: Recorded,
+    hang_from_round: Option<u64>,
+}
+
+impl TestTrainer {
+    pub fn new(shard: usize, hang_from_round: Option<u64>) -> (Self, Recorded) {
+        let recorded = Recorded::default();
+        let trainer = Self {
+            inner: LinRegTrainer::new(shard, Partitioning::ByEpisode),
+            recorded: recorded.clone(),
+            hang_from_round,
+        };
+        (trainer, recorded)
+    }
+}
+
+impl LocalTrainer for TestTrainer {
+    fn capabilities(&self) -> Capabilities {
+        self.inner.capabilities()
+    }
+
+    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
+        self.inner.set_global(global)
+    }
+
+    async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        if self.hang_from_round.is_some_and(|r| task.round >= r) {
+            std::future::pending::<()>().await;
+        }
+        let out = self.inner.train(task).await?;
+        self.recorded.lock().unwrap().push((task.round, out.clone()));
+        Ok(out)
+    }
+
+    async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
+        self.inner.evaluate().await
+    }
+}
+
+/// A native client named `client-<shard>` over a real WebSocket.
+pub fn spawn_client(
+    handle: &ServerHandle,
+    shard: usize,
+    hang_from_round: Option<u64>,
+) -> (JoinHandle<Result<ClientSummary, ClientError>>, Recorded) {
+    let url = format!("ws://{}", handle.addr());
+    let (mut trainer, recorded) = TestTrainer::new(shard, hang_from_round);
+    let task = tokio::spawn(async move {
+        let mut transport = NativeTransport::connect(&url).await.expect("connect");
+        let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+        run_client(&mut transport, &mut trainer, &options, |_| {}).await
+    });
+    (task, recorded)
+}
+
+/// The metrics lines of a run.
+pub fn metrics(dir: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(dir.join(METRICS_FILE))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+/// The example-weighted mean, computed here independently of the strategy.
+pub fn weighted_mean(updates: &[TrainOutput]) -> NamedTensors {
+    let total: f64 = updates.iter().map(|u| u.examples as f64).sum();
+    let mut out = NamedTensors::new();
+    for (name, t) in updates[0].update.iter() {
+        let values = (0..t.values.len())
+            .map(|i| {
+                let sum: f64 =
+                    updates.iter().map(|u| u.examples as f64 * f64::from(u.update.get(name).unwrap().values[i])).sum();
+                (sum / total) as f32
+            })
+            .collect();
+        out.insert(name, t.shape.clone(), values).unwrap();
+    }
+    out
+}
+
+pub fn assert_close(a: &NamedTensors, b: &NamedTensors, tol: f32) {
+    assert_eq!(a.spec(), b.spec());
+    for (name, t) in a.iter() {
+        for (x, y) in t.values.iter().zip(&b.get(name).unwrap().values) {
+            assert!((x - y).abs() <= tol, "{name}: {x} vs {y}");
+        }
+    }
+}
+
+/// A hand-driven WebSocket client, for protocol violations.
+pub struct RawClient {
+    ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
+}
+
+impl RawClient {
+    pub async fn connect(handle: &ServerHandle) -> Self {
+        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", handle.addr())).await.unwrap();
+        Self { ws }
+    }
+
+    /// Connects and joins with the current protocol version; returns the client and its id.
+    pub async fn join(handle: &ServerHandle, name: &str) -> (Self, u64) {
+        let mut c = Self::connect(handle).await;
+        c.send(&join_message(name, PROTOCOL_VERSION)).await;
+        match c.recv().await {
+            Some(ServerMessage::Welcome { client_id, .. }) => (c, client_id),
+            other => panic!("expected welcome, got {other:?}"),
+        }
+    }
+
+    pub async fn send(&mut self, msg: &ClientMessage) {
+        self.send_text(serde_json::to_string(msg).unwrap()).await;
+    }
+
+    pub async fn send_text(&mut self, text: String) {
+        self.ws.send(Message::text(text)).await.unwrap();
+    }
+
+    pub async fn send_binary(&mut self, frame: Vec<u8>) {
+        self.ws.send(Message::binary(frame)).await.unwrap();
+    }
+
+    /// Next server message, `None` once closed.
+    pub async fn recv(&mut self) -> Option<ServerMessage> {
+        loop {
+            let frame = tokio::time::timeout(Duration::from_secs(10), self.ws.next()).await.expect("reply within 10 s");
+            match frame {
+                Some(Ok(Message::Text(t))) => return Some(serde_json::from_str(t.as_str()).unwrap()),
+                Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return None,
+                Some(Ok(_)) => {}
+            }
+        }
+    }
+}
+
+pub fn join_message(name: &str, protocol_version: u16) -> ClientMessage {
+    ClientMessage::Join {
+        protocol_version,
+        auth_token: None,
+        name: name.into(),
+        capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
+    }
+}

@@ -9,7 +9,8 @@ use std::sync::atomic::Ordering;
 use axum::extract::ws::Message;
 use fedvla_federation::codec::decode_payload;
 use fedvla_federation::{
-    ClientMessage, CodecError, ErrorCode, NamedTensors, PROTOCOL_VERSION, Reassembler, ServerMessage,
+    ClientMessage, CodecError, ErrorCode, NamedTensors, PROTOCOL_VERSION, Reassembler,
+    ServerMessage,
 };
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
@@ -25,7 +26,12 @@ where
     R: Stream<Item = Result<Message, E>> + Unpin,
     E: Display,
 {
-    let mut conn = Connection { sink, state, client_id: None, upload: Upload::Idle };
+    let mut conn = Connection {
+        sink,
+        state,
+        client_id: None,
+        upload: Upload::Idle,
+    };
     let Some(mut outbox) = conn.join(&mut stream).await else {
         conn.close().await;
         return;
@@ -76,7 +82,11 @@ enum Flow {
 /// Where an upload stands.
 enum Upload {
     Idle,
-    Receiving { header: AnnouncedUpdate, reassembler: Option<Reassembler>, bytes: u64 },
+    Receiving {
+        header: AnnouncedUpdate,
+        reassembler: Option<Reassembler>,
+        bytes: u64,
+    },
     /// A refused update: its remaining frames are dropped silently until the next control message.
     Discarding,
 }
@@ -118,28 +128,45 @@ where
             },
         };
         let (name, capabilities) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
-            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities }) => {
+            Ok(ClientMessage::Join {
+                protocol_version,
+                auth_token,
+                name,
+                capabilities,
+            }) => {
                 if protocol_version != PROTOCOL_VERSION {
-                    let message =
-                        format!("client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}");
+                    let message = format!(
+                        "client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}"
+                    );
                     self.refuse(ErrorCode::ProtocolVersion, message).await;
                     return None;
                 }
                 if let Some(expected) = &self.state.auth_token
                     && auth_token.as_deref() != Some(expected)
                 {
-                    self.refuse(ErrorCode::Unauthorized, "missing or wrong auth token".into()).await;
+                    self.refuse(
+                        ErrorCode::Unauthorized,
+                        "missing or wrong auth token".into(),
+                    )
+                    .await;
                     return None;
                 }
                 (name, capabilities)
             }
             Ok(other) => {
-                self.refuse(ErrorCode::UnexpectedMessage, format!("the first message must be a join, got {other:?}"))
-                    .await;
+                self.refuse(
+                    ErrorCode::UnexpectedMessage,
+                    format!("the first message must be a join, got {other:?}"),
+                )
+                .await;
                 return None;
             }
             Err(e) => {
-                self.refuse(ErrorCode::MalformedMessage, format!("bad join message: {e}")).await;
+                self.refuse(
+                    ErrorCode::MalformedMessage,
+                    format!("bad join message: {e}"),
+                )
+                .await;
                 return None;
             }
         };
@@ -147,7 +174,12 @@ where
         self.client_id = Some(client_id);
         let (outbox, inbox) = mpsc::unbounded_channel();
         tracing::info!(client_id, %name, backend = %capabilities.backend, "client joined");
-        let joined = Event::Joined { client_id, name, capabilities, outbox };
+        let joined = Event::Joined {
+            client_id,
+            name,
+            capabilities,
+            outbox,
+        };
         if self.state.events.send(joined).await.is_err() {
             return None;
         }
@@ -166,42 +198,94 @@ where
         let client_id = self.client_id.expect("joined");
         if matches!(self.upload, Upload::Receiving { .. }) {
             self.upload = Upload::Idle;
-            return self.refuse(ErrorCode::MalformedFrame, "control message in the middle of an update".into()).await;
+            return self
+                .refuse(
+                    ErrorCode::MalformedFrame,
+                    "control message in the middle of an update".into(),
+                )
+                .await;
         }
         self.upload = Upload::Idle;
         let msg = match serde_json::from_str::<ClientMessage>(text) {
             Ok(msg) => msg,
-            Err(e) => return self.refuse(ErrorCode::MalformedMessage, format!("bad control message: {e}")).await,
+            Err(e) => {
+                return self
+                    .refuse(
+                        ErrorCode::MalformedMessage,
+                        format!("bad control message: {e}"),
+                    )
+                    .await;
+            }
         };
         let event = match msg {
             ClientMessage::Join { .. } => {
-                return self.refuse(ErrorCode::UnexpectedMessage, "already joined".into()).await;
+                return self
+                    .refuse(ErrorCode::UnexpectedMessage, "already joined".into())
+                    .await;
             }
             ClientMessage::Heartbeat => {
                 tracing::trace!(client_id, "heartbeat");
                 return Flow::Continue;
             }
-            ClientMessage::UpdateHeader { round, examples, train_loss, payload_bytes } => {
+            ClientMessage::UpdateHeader {
+                round,
+                examples,
+                train_loss,
+                payload_bytes,
+            } => {
                 let limit = self.state.limits.max_payload_bytes;
                 if payload_bytes > limit {
-                    return self.refuse_codec(CodecError::Oversized { len: payload_bytes, limit }).await;
+                    return self
+                        .refuse_codec(CodecError::Oversized {
+                            len: payload_bytes,
+                            limit,
+                        })
+                        .await;
                 }
-                let header = AnnouncedUpdate { round, examples, train_loss, payload_bytes };
-                self.upload = Upload::Receiving { header, reassembler: None, bytes: 0 };
+                let header = AnnouncedUpdate {
+                    round,
+                    examples,
+                    train_loss,
+                    payload_bytes,
+                };
+                self.upload = Upload::Receiving {
+                    header,
+                    reassembler: None,
+                    bytes: 0,
+                };
                 return Flow::Continue;
             }
             ClientMessage::Metrics(metrics) => Event::Metrics { client_id, metrics },
-            ClientMessage::EvalResult { round, examples, loss } => Event::EvalResult { client_id, round, examples, loss },
+            ClientMessage::EvalResult {
+                round,
+                examples,
+                loss,
+            } => Event::EvalResult {
+                client_id,
+                round,
+                examples,
+                loss,
+            },
         };
         self.emit(event).await
     }
 
     async fn on_binary(&mut self, frame: &[u8]) -> Flow {
-        let Upload::Receiving { header, reassembler, bytes } = &mut self.upload else {
+        let Upload::Receiving {
+            header,
+            reassembler,
+            bytes,
+        } = &mut self.upload
+        else {
             if matches!(self.upload, Upload::Discarding) {
                 return Flow::Continue;
             }
-            return self.refuse(ErrorCode::UnexpectedMessage, "binary frame without an update header".into()).await;
+            return self
+                .refuse(
+                    ErrorCode::UnexpectedMessage,
+                    "binary frame without an update header".into(),
+                )
+                .await;
         };
         let header = *header;
         *bytes += frame.len() as u64;
@@ -226,7 +310,10 @@ where
             return Flow::Continue;
         }
         let bytes = *bytes;
-        let Upload::Receiving { reassembler: Some(reassembler), .. } = std::mem::replace(&mut self.upload, Upload::Idle)
+        let Upload::Receiving {
+            reassembler: Some(reassembler),
+            ..
+        } = std::mem::replace(&mut self.upload, Upload::Idle)
         else {
             unreachable!("checked above")
         };
@@ -247,7 +334,11 @@ where
                     train_loss: header.train_loss,
                     bytes,
                 };
-                self.emit(Event::Update { client_id, update: Box::new(update) }).await
+                self.emit(Event::Update {
+                    client_id,
+                    update: Box::new(update),
+                })
+                .await
             }
             Err(e) => self.refuse_codec(e).await,
         }
@@ -263,7 +354,11 @@ where
         if !matches!(self.upload, Upload::Idle) {
             self.upload = Upload::Discarding;
         }
-        self.emit(Event::Rejected { client_id: self.client_id, code }).await;
+        self.emit(Event::Rejected {
+            client_id: self.client_id,
+            code,
+        })
+        .await;
         let flow = self.send(&ServerMessage::Error { code, message }).await;
         if code.is_fatal() { Flow::Close } else { flow }
     }
@@ -288,5 +383,214 @@ where
 
     async fn close(&mut self) {
         self.sink.send(Message::Close(None)).await.ok();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::convert::Infallible;
+    use std::sync::atomic::AtomicU64;
+
+    use axum::body::Bytes;
+    use fedvla_federation::codec::{DEFAULT_MAX_FRAME_BYTES, encode_payload, encode_update};
+    use fedvla_federation::{Capabilities, UpdateLimits};
+    use futures_util::{sink, stream};
+    use tokio::sync::watch;
+    use tokio_util::sync::CancellationToken;
+
+    use super::*;
+    use crate::app::PublishedModel;
+
+    fn tensors(bias: f32) -> NamedTensors {
+        let mut t = NamedTensors::new();
+        t.insert("w", vec![2, 2], vec![1.0, 2.0, 3.0, 4.0]).unwrap();
+        t.insert("b", vec![1], vec![bias]).unwrap();
+        t
+    }
+
+    struct Harness {
+        to_server: mpsc::UnboundedSender<Message>,
+        from_server: mpsc::UnboundedReceiver<Message>,
+        events: mpsc::Receiver<Event>,
+        cancel: CancellationToken,
+        task: tokio::task::JoinHandle<()>,
+    }
+
+    impl Harness {
+        /// `handle_socket` over in-memory channels instead of a WebSocket.
+        fn new() -> Self {
+            let (to_server, server_rx) = mpsc::unbounded_channel::<Message>();
+            let (server_tx, from_server) = mpsc::unbounded_channel::<Message>();
+            let (events_tx, events) = mpsc::channel(16);
+            let cancel = CancellationToken::new();
+            let spec = tensors(0.0).spec();
+            let (_model_tx, model) = watch::channel(Arc::new(PublishedModel {
+                version: 0,
+                safetensors: Bytes::new(),
+            }));
+            let state = AppState {
+                events: events_tx,
+                model,
+                cancel: cancel.clone(),
+                limits: UpdateLimits::for_spec(&spec, DEFAULT_MAX_FRAME_BYTES, 0),
+                spec: Arc::new(spec),
+                auth_token: Some(Arc::from("secret")),
+                next_client_id: Arc::new(AtomicU64::new(7)),
+            };
+            let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
+                tx.send(msg).ok();
+                Ok::<_, Infallible>(tx)
+            }));
+            let stream = Box::pin(stream::unfold(server_rx, |mut rx| async move {
+                rx.recv().await.map(|m| (Ok::<_, Infallible>(m), rx))
+            }));
+            let task = tokio::spawn(handle_socket(sink, stream, state));
+            Self {
+                to_server,
+                from_server,
+                events,
+                cancel,
+                task,
+            }
+        }
+
+        fn send(&self, msg: &ClientMessage) {
+            self.to_server
+                .send(Message::Text(serde_json::to_string(msg).unwrap().into()))
+                .unwrap();
+        }
+
+        async fn recv(&mut self) -> Message {
+            self.from_server.recv().await.expect("server message")
+        }
+
+        async fn recv_control(&mut self) -> ServerMessage {
+            match self.recv().await {
+                Message::Text(t) => serde_json::from_str(t.as_str()).unwrap(),
+                other => panic!("expected text, got {other:?}"),
+            }
+        }
+
+        fn join(&self, token: Option<&str>) {
+            self.send(&ClientMessage::Join {
+                protocol_version: PROTOCOL_VERSION,
+                auth_token: token.map(str::to_owned),
+                name: "c".into(),
+                capabilities: Capabilities {
+                    backend: "test".into(),
+                    memory_bytes: 0,
+                },
+            });
+        }
+
+        fn upload(&self, t: &NamedTensors) {
+            let payload_bytes = encode_payload(t).len() as u64;
+            self.send(&ClientMessage::UpdateHeader {
+                round: 3,
+                examples: 5,
+                train_loss: 0.25,
+                payload_bytes,
+            });
+            for frame in encode_update(t, 3, 40) {
+                self.to_server.send(Message::Binary(frame.into())).unwrap();
+            }
+        }
+    }
+
+    #[tokio::test]
+    async fn join_update_refusal_outbox_and_shutdown() {
+        let mut h = Harness::new();
+        h.join(Some("secret"));
+        assert!(matches!(
+            h.recv_control().await,
+            ServerMessage::Welcome { client_id: 7, .. }
+        ));
+        let Some(Event::Joined {
+            client_id: 7,
+            outbox,
+            ..
+        }) = h.events.recv().await
+        else {
+            panic!("joined")
+        };
+
+        h.upload(&tensors(0.5));
+        match h.events.recv().await {
+            Some(Event::Update {
+                client_id: 7,
+                update,
+            }) => {
+                assert_eq!(update.tensors, tensors(0.5));
+                assert_eq!(
+                    (update.round, update.examples, update.train_loss),
+                    (3, 5, 0.25)
+                );
+                let frames = encode_update(&tensors(0.5), 3, 40);
+                assert_eq!(
+                    update.bytes,
+                    frames.iter().map(|f| f.len() as u64).sum::<u64>()
+                );
+            }
+            other => panic!("expected update, got {other:?}"),
+        }
+
+        h.upload(&tensors(f32::NAN));
+        assert!(matches!(
+            h.events.recv().await,
+            Some(Event::Rejected {
+                client_id: Some(7),
+                code: ErrorCode::NonFinite
+            })
+        ));
+        assert!(matches!(
+            h.recv_control().await,
+            ServerMessage::Error {
+                code: ErrorCode::NonFinite,
+                ..
+            }
+        ));
+
+        outbox.send(ServerMessage::Finished { rounds: 1 }).unwrap();
+        assert_eq!(
+            h.recv_control().await,
+            ServerMessage::Finished { rounds: 1 }
+        );
+
+        h.cancel.cancel();
+        assert!(matches!(
+            h.recv_control().await,
+            ServerMessage::Error {
+                code: ErrorCode::ShuttingDown,
+                ..
+            }
+        ));
+        assert!(matches!(h.recv().await, Message::Close(_)));
+        assert!(matches!(
+            h.events.recv().await,
+            Some(Event::Left { client_id: 7 })
+        ));
+        h.task.await.unwrap();
+    }
+
+    #[tokio::test]
+    async fn wrong_token_is_refused_and_closed() {
+        let mut h = Harness::new();
+        h.join(Some("guess"));
+        assert!(matches!(
+            h.recv_control().await,
+            ServerMessage::Error {
+                code: ErrorCode::Unauthorized,
+                ..
+            }
+        ));
+        assert!(matches!(h.recv().await, Message::Close(_)));
+        assert!(matches!(
+            h.events.recv().await,
+            Some(Event::Rejected {
+                client_id: None,
+                code: ErrorCode::Unauthorized
+            })
+        ));
+        h.task.await.unwrap();
     }
 }

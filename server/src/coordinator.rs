@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
 use fedvla_federation::{
-    AggregateError, BoxError, Capabilities, ErrorCode, EvalMetrics, Evaluator, NamedTensors, RoundMetrics, RoundTask,
-    ServerMessage, Strategy,
+    AggregateError, BoxError, Capabilities, ErrorCode, EvalMetrics, Evaluator, NamedTensors,
+    RoundMetrics, RoundTask, ServerMessage, Strategy,
 };
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -27,13 +27,34 @@ use crate::run_dir::{ModelExporter, RunDir, RunDirError};
 /// What connections tell the coordinator.
 #[derive(Debug)]
 pub enum Event {
-    Joined { client_id: u64, name: String, capabilities: Capabilities, outbox: mpsc::UnboundedSender<ServerMessage> },
-    Left { client_id: u64 },
-    Update { client_id: u64, update: Box<UpdateReceived> },
-    Metrics { client_id: u64, metrics: RoundMetrics },
-    EvalResult { client_id: u64, round: u64, examples: u64, loss: f64 },
+    Joined {
+        client_id: u64,
+        name: String,
+        capabilities: Capabilities,
+        outbox: mpsc::UnboundedSender<ServerMessage>,
+    },
+    Left {
+        client_id: u64,
+    },
+    Update {
+        client_id: u64,
+        update: Box<UpdateReceived>,
+    },
+    Metrics {
+        client_id: u64,
+        metrics: RoundMetrics,
+    },
+    EvalResult {
+        client_id: u64,
+        round: u64,
+        examples: u64,
+        loss: f64,
+    },
     /// Input refused by a connection (already answered with an `Error`); `None` before the client joined.
-    Rejected { client_id: Option<u64>, code: ErrorCode },
+    Rejected {
+        client_id: Option<u64>,
+        code: ErrorCode,
+    },
 }
 
 /// A complete, validated update.
@@ -109,7 +130,11 @@ struct RoundState {
 
 impl Coordinator {
     pub async fn run(self) -> Result<RunStatus, CoordinatorError> {
-        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new() };
+        let mut this = Running {
+            c: self,
+            clients: BTreeMap::new(),
+            round_rejections: BTreeMap::new(),
+        };
         let result = this.run().await;
         if let Err(e) = &result {
             tracing::warn!(error = %e, "coordinator stopped");
@@ -134,7 +159,8 @@ impl Running {
             }
             None => {
                 let metrics = self.evaluate(0).await?;
-                self.persist(0, json!({ "clients": [], "global": metrics })).await?;
+                self.persist(0, json!({ "clients": [], "global": metrics }))
+                    .await?;
                 1
             }
         };
@@ -165,7 +191,13 @@ impl Running {
             updates.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
             let version = self.c.global_version();
             if updates.len() < self.c.config.min_fit {
-                tracing::warn!(round, attempt, updates = updates.len(), min_fit = self.c.config.min_fit, "round retried");
+                tracing::warn!(
+                    round,
+                    attempt,
+                    updates = updates.len(),
+                    min_fit = self.c.config.min_fit,
+                    "round retried"
+                );
                 self.broadcast(ServerMessage::RoundClosed {
                     round,
                     accepted: false,
@@ -175,10 +207,15 @@ impl Running {
                 self.c.status_tx.send_modify(|s| s.retried_rounds += 1);
                 continue;
             }
-            let inputs: Vec<(NamedTensors, u64)> = updates.iter().map(|(_, _, u)| (u.tensors.clone(), u.examples)).collect();
+            let inputs: Vec<(NamedTensors, u64)> = updates
+                .iter()
+                .map(|(_, _, u)| (u.tensors.clone(), u.examples))
+                .collect();
             let accepted = updates.len() as u32;
             self.aggregate(inputs).await?;
-            let metrics = if round % self.c.config.eval_every == 0 || round == self.c.config.num_server_rounds {
+            let metrics = if round.is_multiple_of(self.c.config.eval_every)
+                || round == self.c.config.num_server_rounds
+            {
                 Some(self.evaluate(round).await?)
             } else {
                 None
@@ -187,7 +224,12 @@ impl Running {
             let seconds = started.elapsed().as_secs_f64();
             self.persist(round, json!({ "attempt": attempt, "seconds": seconds, "clients": clients, "global": metrics }))
                 .await?;
-            self.broadcast(ServerMessage::RoundClosed { round, accepted: true, model_version: round, updates: accepted });
+            self.broadcast(ServerMessage::RoundClosed {
+                round,
+                accepted: true,
+                model_version: round,
+                updates: accepted,
+            });
             return Ok(());
         }
         unreachable!("attempts are unbounded")
@@ -215,10 +257,16 @@ impl Running {
     /// Samples clients and sends them their tasks.
     fn start_round(&mut self, round: u64, attempt: u64) -> RoundState {
         let cfg = &self.c.config;
-        let mut pool: Vec<(&str, u64)> = self.clients.iter().map(|(id, c)| (c.name.as_str(), *id)).collect();
+        let mut pool: Vec<(&str, u64)> = self
+            .clients
+            .iter()
+            .map(|(id, c)| (c.name.as_str(), *id))
+            .collect();
         pool.sort();
         let n = pool.len();
-        let k = ((cfg.fraction_fit * n as f64).ceil() as usize).max(cfg.min_fit).min(n);
+        let k = ((cfg.fraction_fit * n as f64).ceil() as usize)
+            .max(cfg.min_fit)
+            .min(n);
         let mut rng = StdRng::seed_from_u64(mix(mix(cfg.seed, round), attempt));
         let mut picked = rand::seq::index::sample(&mut rng, n, k).into_vec();
         picked.sort_unstable();
@@ -233,20 +281,32 @@ impl Running {
                 batch_size: cfg.batch_size,
                 lr: cfg.lr,
                 seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
-                strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
+                strategy: self
+                    .c
+                    .strategy
+                    .lock()
+                    .expect("strategy lock")
+                    .client_params(),
                 deadline_ms: cfg.round_deadline_ms,
-                eval_request: round % cfg.eval_every == 0,
+                eval_request: round.is_multiple_of(cfg.eval_every),
             };
-            self.clients[&client_id].outbox.send(ServerMessage::RoundTask(task)).ok();
+            self.clients[&client_id]
+                .outbox
+                .send(ServerMessage::RoundTask(task))
+                .ok();
             participants.insert(client_id, Participant::default());
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
-        RoundState { round, participants }
+        RoundState {
+            round,
+            participants,
+        }
     }
 
     /// Handles events until every participant is done or the deadline passes.
     async fn collect(&mut self, mut state: RoundState) -> Result<RoundState, CoordinatorError> {
-        let deadline = tokio::time::Instant::now() + Duration::from_millis(self.c.config.round_deadline_ms);
+        let deadline =
+            tokio::time::Instant::now() + Duration::from_millis(self.c.config.round_deadline_ms);
         while !state.participants.values().all(|p| p.done) {
             tokio::select! {
                 () = tokio::time::sleep_until(deadline) => {
@@ -269,7 +329,12 @@ impl Running {
         // Each event concerns at most one participant, so the map is taken once.
         let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
         match event {
-            Event::Joined { client_id, name, capabilities, outbox } => {
+            Event::Joined {
+                client_id,
+                name,
+                capabilities,
+                outbox,
+            } => {
                 tracing::debug!(client_id, ?capabilities, "registered");
                 self.clients.insert(client_id, ClientEntry { name, outbox });
             }
@@ -279,26 +344,39 @@ impl Running {
                     p.done = true;
                 }
             }
-            Event::Update { client_id, update } => {
-                match participant(client_id) {
-                    Some(p) if Some(update.round) == current && p.update.is_none() => p.update = Some(*update),
-                    _ => {
-                        let message = format!("update for round {} is not expected (current round {current:?})", update.round);
-                        tracing::warn!(client_id, %message, "refused update");
-                        self.count(ErrorCode::StaleRound);
-                        if let Some(c) = self.clients.get(&client_id) {
-                            c.outbox.send(ServerMessage::Error { code: ErrorCode::StaleRound, message }).ok();
-                        }
+            Event::Update { client_id, update } => match participant(client_id) {
+                Some(p) if Some(update.round) == current && p.update.is_none() => {
+                    p.update = Some(*update)
+                }
+                _ => {
+                    let message = format!(
+                        "update for round {} is not expected (current round {current:?})",
+                        update.round
+                    );
+                    tracing::warn!(client_id, %message, "refused update");
+                    self.count(ErrorCode::StaleRound);
+                    if let Some(c) = self.clients.get(&client_id) {
+                        c.outbox
+                            .send(ServerMessage::Error {
+                                code: ErrorCode::StaleRound,
+                                message,
+                            })
+                            .ok();
                     }
                 }
-            }
+            },
             Event::Metrics { client_id, metrics } => {
                 if let Some(p) = participant(client_id).filter(|_| Some(metrics.round) == current) {
                     p.metrics = Some(metrics);
                     p.done = true;
                 }
             }
-            Event::EvalResult { client_id, round: r, examples, loss } => {
+            Event::EvalResult {
+                client_id,
+                round: r,
+                examples,
+                loss,
+            } => {
                 if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
                     p.eval = Some((examples, loss));
                 }
@@ -312,12 +390,16 @@ impl Running {
             }
         }
         let connected = self.clients.len();
-        self.c.status_tx.send_if_modified(|s| std::mem::replace(&mut s.connected, connected) != connected);
+        self.c
+            .status_tx
+            .send_if_modified(|s| std::mem::replace(&mut s.connected, connected) != connected);
     }
 
     fn count(&mut self, code: ErrorCode) {
         *self.round_rejections.entry(code).or_default() += 1;
-        self.c.status_tx.send_modify(|s| *s.rejections.entry(code).or_default() += 1);
+        self.c
+            .status_tx
+            .send_modify(|s| *s.rejections.entry(code).or_default() += 1);
     }
 
     fn broadcast(&self, msg: ServerMessage) {
@@ -349,10 +431,19 @@ impl Running {
             .collect()
     }
 
-    async fn aggregate(&mut self, updates: Vec<(NamedTensors, u64)>) -> Result<(), CoordinatorError> {
+    async fn aggregate(
+        &mut self,
+        updates: Vec<(NamedTensors, u64)>,
+    ) -> Result<(), CoordinatorError> {
         let strategy = Arc::clone(&self.c.strategy);
         let global = Arc::clone(&self.c.global);
-        let result = blocking(move || strategy.lock().expect("strategy lock").aggregate(&global, &updates)).await;
+        let result = blocking(move || {
+            strategy
+                .lock()
+                .expect("strategy lock")
+                .aggregate(&global, &updates)
+        })
+        .await;
         self.c.global = Arc::new(result?);
         Ok(())
     }
@@ -360,28 +451,44 @@ impl Running {
     async fn evaluate(&mut self, round: u64) -> Result<EvalMetrics, CoordinatorError> {
         let evaluator = Arc::clone(&self.c.evaluator);
         let global = Arc::clone(&self.c.global);
-        let result = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&global)).await;
+        let result =
+            blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&global)).await;
         let metrics = result.map_err(CoordinatorError::Evaluate)?;
         tracing::info!(round, ?metrics, "global model evaluated");
         Ok(metrics)
     }
 
     /// Saves the round's model, appends its metrics line, then publishes the model for download.
-    async fn persist(&mut self, round: u64, mut line: serde_json::Value) -> Result<(), CoordinatorError> {
-        let rejections: BTreeMap<&str, u64> =
-            std::mem::take(&mut self.round_rejections).into_iter().map(|(c, n)| (c.as_str(), n)).collect();
+    async fn persist(
+        &mut self,
+        round: u64,
+        mut line: serde_json::Value,
+    ) -> Result<(), CoordinatorError> {
+        let rejections: BTreeMap<&str, u64> = std::mem::take(&mut self.round_rejections)
+            .into_iter()
+            .map(|(c, n)| (c.as_str(), n))
+            .collect();
         line["round"] = json!(round);
         line["model_version"] = json!(round);
         line["rejections"] = json!(rejections);
         line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
-        let (run_dir, exporters, global) = (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global));
+        let (run_dir, exporters, global) = (
+            self.c.run_dir.clone(),
+            Arc::clone(&self.c.exporters),
+            Arc::clone(&self.c.global),
+        );
         let bytes = blocking(move || -> Result<Vec<u8>, RunDirError> {
             run_dir.save_model(round, &global, &exporters)?;
             run_dir.append_metrics(&line)?;
-            global.to_safetensors().map_err(|source| RunDirError::Model { round, source })
+            global
+                .to_safetensors()
+                .map_err(|source| RunDirError::Model { round, source })
         })
         .await?;
-        self.c.model_tx.send_replace(Arc::new(PublishedModel { version: round, safetensors: Bytes::from(bytes) }));
+        self.c.model_tx.send_replace(Arc::new(PublishedModel {
+            version: round,
+            safetensors: Bytes::from(bytes),
+        }));
         self.c.completed = Some(round);
         self.c.status_tx.send_modify(|s| s.completed_rounds = round);
         tracing::info!(round, "round completed");
@@ -405,12 +512,16 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
 
 /// splitmix64 of `a` combined with `b`: seeds derived per round, attempt and client.
 fn mix(a: u64, b: u64) -> u64 {
-    let mut z = a ^ b.wrapping_add(0x9e37_79b9_7f4a_7c15).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    let mut z = a ^ b
+        .wrapping_add(0x9e37_79b9_7f4a_7c15)
+        .wrapping_mul(0xbf58_476d_1ce4_e5b9);
     z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
     z ^ (z >> 31)
 }
 
 fn fnv1a(s: &str) -> u64 {
-    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    })
 }

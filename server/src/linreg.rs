@@ -3,7 +3,8 @@
 //! never crosses the wire, only the head (`head.weight`, `head.bias`) is trainable and exchanged.
 
 use fedvla_federation::{
-    BoxError, Capabilities, EvalMetrics, EvalOutput, Evaluator, LocalTrainer, NamedTensors, RoundTask, TrainOutput,
+    BoxError, Capabilities, EvalMetrics, EvalOutput, Evaluator, LocalTrainer, NamedTensors,
+    RoundTask, TrainOutput,
 };
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -34,7 +35,9 @@ impl World {
         let mut rng = StdRng::seed_from_u64(WORLD_SEED);
         let scale = 1.0 / (INPUTS as f32).sqrt();
         Self {
-            projection: (0..FEATURES * INPUTS).map(|_| rng.random_range(-scale..scale) * 2.0).collect(),
+            projection: (0..FEATURES * INPUTS)
+                .map(|_| rng.random_range(-scale..scale) * 2.0)
+                .collect(),
             true_weight: (0..FEATURES).map(|_| rng.random_range(-1.0..1.0)).collect(),
             true_bias: rng.random_range(-0.5..0.5),
         }
@@ -53,7 +56,9 @@ impl World {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut out = Examples::default();
         for _ in 0..n {
-            let x: Vec<f32> = (0..INPUTS).map(|_| rng.random_range(-1.0..1.0) + shift).collect();
+            let x: Vec<f32> = (0..INPUTS)
+                .map(|_| rng.random_range(-1.0..1.0) + shift)
+                .collect();
             let phi = self.features(&x);
             let y = dot(&self.true_weight, &phi) + self.true_bias + rng.random_range(-NOISE..NOISE);
             out.features.push(phi);
@@ -94,7 +99,8 @@ pub fn initial_model(seed: u64) -> NamedTensors {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut t = NamedTensors::new();
     let weight = (0..FEATURES).map(|_| rng.random_range(-0.1..0.1)).collect();
-    t.insert(WEIGHT, vec![1, FEATURES], weight).expect("shape matches");
+    t.insert(WEIGHT, vec![1, FEATURES], weight)
+        .expect("shape matches");
     t.insert(BIAS, vec![1], vec![0.0]).expect("shape matches");
     t
 }
@@ -137,7 +143,10 @@ impl LinRegTrainer {
 
 impl LocalTrainer for LinRegTrainer {
     fn capabilities(&self) -> Capabilities {
-        Capabilities { backend: "cpu-f32".into(), memory_bytes: (self.train.len() * FEATURES * 4) as u64 }
+        Capabilities {
+            backend: "cpu-f32".into(),
+            memory_bytes: (self.train.len() * FEATURES * 4) as u64,
+        }
     }
 
     fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
@@ -192,7 +201,10 @@ impl LocalTrainer for LinRegTrainer {
     }
 
     async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
-        Ok(EvalOutput { examples: self.heldout.len() as u64, loss: self.heldout.mse(&self.weight, self.bias) })
+        Ok(EvalOutput {
+            examples: self.heldout.len() as u64,
+            loss: self.heldout.mse(&self.weight, self.bias),
+        })
     }
 }
 
@@ -204,7 +216,9 @@ pub struct LinRegEvaluator {
 
 impl Default for LinRegEvaluator {
     fn default() -> Self {
-        Self { heldout: World::new().examples(WORLD_SEED ^ 0xe7a1, 256, 0.0) }
+        Self {
+            heldout: World::new().examples(WORLD_SEED ^ 0xe7a1, 256, 0.0),
+        }
     }
 }
 
@@ -232,7 +246,10 @@ mod tests {
             batch_size: 16,
             lr: 0.05,
             seed,
-            strategy: StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
+            strategy: StrategyParams {
+                name: "fedavg".into(),
+                proximal_mu: 0.0,
+            },
             deadline_ms: 1000,
             eval_request: false,
         }

@@ -21,14 +21,33 @@ pub struct NativeTransport {
 impl NativeTransport {
     /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored).
     pub async fn connect(server: &str) -> Result<Self, BoxError> {
-        let uri: Uri = if server.contains("://") { server.parse()? } else { format!("ws://{server}").parse()? };
+        let uri: Uri = if server.contains("://") {
+            server.parse()?
+        } else {
+            format!("ws://{server}").parse()?
+        };
         if !matches!(uri.scheme_str(), Some("ws" | "http")) {
-            return Err(format!("unsupported scheme in `{server}`: use ws:// or http:// (TLS is left to a proxy)").into());
+            return Err(format!(
+                "unsupported scheme in `{server}`: use ws:// or http:// (TLS is left to a proxy)"
+            )
+            .into());
         }
-        let authority = uri.authority().ok_or_else(|| format!("no host in `{server}`"))?.to_string();
+        let authority = uri
+            .authority()
+            .ok_or_else(|| format!("no host in `{server}`"))?
+            .to_string();
         // Nagle off: an update is a small header message followed at once by frames.
-        let (ws, _) = tokio_tungstenite::connect_async_with_config(format!("ws://{authority}/ws"), None, true).await?;
-        Ok(Self { ws, authority, started: Instant::now() })
+        let (ws, _) = tokio_tungstenite::connect_async_with_config(
+            format!("ws://{authority}/ws"),
+            None,
+            true,
+        )
+        .await?;
+        Ok(Self {
+            ws,
+            authority,
+            started: Instant::now(),
+        })
     }
 }
 
@@ -46,7 +65,9 @@ impl ClientTransport for NativeTransport {
             match self.ws.next().await {
                 Some(Ok(Message::Text(text))) => return Ok(Some(text.as_str().to_owned())),
                 Some(Ok(Message::Close(_))) | None => return Ok(None),
-                Some(Ok(Message::Binary(_))) => return Err("the server sent an unexpected binary frame".into()),
+                Some(Ok(Message::Binary(_))) => {
+                    return Err("the server sent an unexpected binary frame".into());
+                }
                 Some(Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_))) => {}
                 Some(Err(e)) => return Err(e.into()),
             }
@@ -55,7 +76,8 @@ impl ClientTransport for NativeTransport {
 
     async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
         let stream = TcpStream::connect(&self.authority).await?;
-        let (mut sender, conn) = hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
+        let (mut sender, conn) =
+            hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
         let conn = tokio::spawn(conn);
         let request = hyper::Request::get(format!("/model/{version}"))
             .header(hyper::header::HOST, &self.authority)
@@ -66,7 +88,11 @@ impl ClientTransport for NativeTransport {
         drop(sender);
         conn.await??;
         if !status.is_success() {
-            return Err(format!("GET /model/{version}: {status}: {}", String::from_utf8_lossy(&body)).into());
+            return Err(format!(
+                "GET /model/{version}: {status}: {}",
+                String::from_utf8_lossy(&body)
+            )
+            .into());
         }
         Ok(body.to_vec())
     }

@@ -53,7 +53,14 @@ pub struct ServerHandle {
 
 /// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
 pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, StartError> {
-    let ServerParts { config, run_dir, initial, strategy, evaluator, exporters } = parts;
+    let ServerParts {
+        config,
+        run_dir,
+        initial,
+        strategy,
+        evaluator,
+        exporters,
+    } = parts;
     let spec = Arc::new(initial.spec());
     let completed = run_dir.last_completed_round()?;
     let global = match completed {
@@ -66,9 +73,14 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     };
     let version = completed.unwrap_or(0);
     let bytes = global.to_safetensors().map_err(StartError::Spec)?;
-    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel { version, safetensors: Bytes::from(bytes) }));
-    let (status_tx, status) =
-        watch::channel(RunStatus { completed_rounds: version, ..RunStatus::default() });
+    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel {
+        version,
+        safetensors: Bytes::from(bytes),
+    }));
+    let (status_tx, status) = watch::channel(RunStatus {
+        completed_rounds: version,
+        ..RunStatus::default()
+    });
     let (events_tx, events) = mpsc::channel(1024);
     let cancel = CancellationToken::new();
     let limits = UpdateLimits::for_spec(&spec, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
@@ -105,10 +117,18 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
                 tracing::debug!(error = %e, "TCP_NODELAY not set");
             }
         });
-        axum::serve(listener, app(state)).with_graceful_shutdown(shutdown.cancelled_owned()).await
+        axum::serve(listener, app(state))
+            .with_graceful_shutdown(shutdown.cancelled_owned())
+            .await
     });
     tracing::info!(%addr, "listening");
-    Ok(ServerHandle { addr, cancel, status, coordinator, http })
+    Ok(ServerHandle {
+        addr,
+        cancel,
+        status,
+        coordinator,
+        http,
+    })
 }
 
 impl ServerHandle {

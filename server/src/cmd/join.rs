@@ -31,14 +31,27 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut trainer = LinRegTrainer::new(args.shard, args.partitioning);
     super::runtime()?.block_on(async move {
-        let mut transport = NativeTransport::connect(&args.url).await.map_err(|e| anyhow::anyhow!(e))?;
-        let summary = run_client(&mut transport, &mut trainer, &options, |event| match event {
-            ClientEvent::Trained { round, examples, train_loss } => {
-                tracing::info!(round, examples, train_loss, "trained");
-            }
-            ClientEvent::Refused { code, message } => tracing::warn!(code = code.as_str(), %message, "refused"),
-            other => tracing::info!(?other),
-        })
+        let mut transport = NativeTransport::connect(&args.url)
+            .await
+            .map_err(|e| anyhow::anyhow!(e))?;
+        let summary = run_client(
+            &mut transport,
+            &mut trainer,
+            &options,
+            |event| match event {
+                ClientEvent::Trained {
+                    round,
+                    examples,
+                    train_loss,
+                } => {
+                    tracing::info!(round, examples, train_loss, "trained");
+                }
+                ClientEvent::Refused { code, message } => {
+                    tracing::warn!(code = code.as_str(), %message, "refused")
+                }
+                other => tracing::info!(?other),
+            },
+        )
         .await?;
         tracing::info!(
             rounds = summary.rounds_trained,

@@ -63,27 +63,50 @@ impl ConfigArgs {
 /// The server side of the configured workload and strategy.
 fn server_parts(config: RunConfig, run_dir: RunDir) -> ServerParts {
     let (initial, evaluator) = match config.workload {
-        WorkloadKind::Linreg => (linreg::initial_model(config.seed), Box::new(LinRegEvaluator::default())),
+        WorkloadKind::Linreg => (
+            linreg::initial_model(config.seed),
+            Box::new(LinRegEvaluator::default()),
+        ),
     };
     let strategy = match config.strategy {
         StrategyKind::Fedavg => Box::new(FedAvg),
     };
-    ServerParts { config, run_dir, initial, strategy, evaluator, exporters: Vec::new() }
+    ServerParts {
+        config,
+        run_dir,
+        initial,
+        strategy,
+        evaluator,
+        exporters: Vec::new(),
+    }
 }
 
 /// Logs to stderr at `stderr_level` (unless RUST_LOG says otherwise) and, at info, to `server.log`.
 fn init_tracing(log_file: Option<File>, stderr_level: LevelFilter) {
-    let stderr_filter = EnvFilter::builder().with_default_directive(stderr_level.into()).from_env_lossy();
-    let file_layer = log_file
-        .map(|f| fmt::layer().with_ansi(false).with_writer(Mutex::new(f)).with_filter(LevelFilter::INFO));
+    let stderr_filter = EnvFilter::builder()
+        .with_default_directive(stderr_level.into())
+        .from_env_lossy();
+    let file_layer = log_file.map(|f| {
+        fmt::layer()
+            .with_ansi(false)
+            .with_writer(Mutex::new(f))
+            .with_filter(LevelFilter::INFO)
+    });
     tracing_subscriber::registry()
-        .with(fmt::layer().with_writer(std::io::stderr).with_filter(stderr_filter))
+        .with(
+            fmt::layer()
+                .with_writer(std::io::stderr)
+                .with_filter(stderr_filter),
+        )
         .with(file_layer)
         .init();
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")
 }
 
 /// Resolves on ctrl-c or SIGTERM.

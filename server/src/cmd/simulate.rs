@@ -39,12 +39,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let rounds = config.num_server_rounds;
     let partitioning = config.partitioning;
     super::runtime()?.block_on(async move {
-        let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
+        let listener = TcpListener::bind("127.0.0.1:0")
+            .await
+            .context("binding 127.0.0.1:0")?;
         let handle = server::start(super::server_parts(config, run_dir), listener)?;
         let url = format!("ws://{}", handle.addr());
         let bars = MultiProgress::new();
         let round_bar = bars.add(ProgressBar::new(rounds));
-        round_bar.set_style(ProgressStyle::with_template("{prefix:>10} [{bar:30}] {pos}/{len} rounds {msg}")?);
+        round_bar.set_style(ProgressStyle::with_template(
+            "{prefix:>10} [{bar:30}] {pos}/{len} rounds {msg}",
+        )?);
         round_bar.set_prefix("server");
         let mut status = handle.status();
         let watcher = tokio::spawn({
@@ -53,7 +57,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 loop {
                     let s = status.borrow_and_update().clone();
                     round_bar.set_position(s.completed_rounds);
-                    round_bar.set_message(format!("{} connected, {} refusals", s.connected, s.rejections.values().sum::<u64>()));
+                    round_bar.set_message(format!(
+                        "{} connected, {} refusals",
+                        s.connected,
+                        s.rejections.values().sum::<u64>()
+                    ));
                     if s.finished || status.changed().await.is_err() {
                         break;
                     }
@@ -68,27 +76,50 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             bar.set_prefix(format!("client {shard}"));
             let url = url.clone();
             clients.push(tokio::spawn(async move {
-                let mut transport = NativeTransport::connect(&url).await.map_err(|e| anyhow::anyhow!(e))?;
+                let mut transport = NativeTransport::connect(&url)
+                    .await
+                    .map_err(|e| anyhow::anyhow!(e))?;
                 let mut trainer = LinRegTrainer::new(shard, partitioning);
-                let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
-                let summary = run_client(&mut transport, &mut trainer, &options, |event| match event {
-                    ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
-                    ClientEvent::Task { round, local_steps } => {
-                        bar.set_message(format!("round {round}: training {local_steps} steps"));
-                    }
-                    ClientEvent::Trained { round, train_loss, .. } => {
-                        bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
-                    }
-                    ClientEvent::Uploaded { round, bytes } => bar.set_message(format!("round {round}: sent {bytes} B")),
-                    ClientEvent::RoundClosed { round, accepted } => {
-                        if accepted {
-                            bar.set_position(round);
+                let options = ClientOptions {
+                    name: format!("client-{shard}"),
+                    auth_token: None,
+                };
+                let summary = run_client(
+                    &mut transport,
+                    &mut trainer,
+                    &options,
+                    |event| match event {
+                        ClientEvent::Joined { client_id } => {
+                            bar.set_message(format!("joined as {client_id}"))
                         }
-                    }
-                    ClientEvent::Refused { code, .. } => bar.set_message(format!("refused: {}", code.as_str())),
-                })
+                        ClientEvent::Task { round, local_steps } => {
+                            bar.set_message(format!("round {round}: training {local_steps} steps"));
+                        }
+                        ClientEvent::Trained {
+                            round, train_loss, ..
+                        } => {
+                            bar.set_message(format!(
+                                "round {round}: loss {train_loss:.4}, uploading"
+                            ));
+                        }
+                        ClientEvent::Uploaded { round, bytes } => {
+                            bar.set_message(format!("round {round}: sent {bytes} B"))
+                        }
+                        ClientEvent::RoundClosed { round, accepted } => {
+                            if accepted {
+                                bar.set_position(round);
+                            }
+                        }
+                        ClientEvent::Refused { code, .. } => {
+                            bar.set_message(format!("refused: {}", code.as_str()))
+                        }
+                    },
+                )
                 .await?;
-                bar.finish_with_message(format!("{} rounds, {} B up, {} B down", summary.rounds_trained, summary.bytes_up, summary.bytes_down));
+                bar.finish_with_message(format!(
+                    "{} rounds, {} B up, {} B down",
+                    summary.rounds_trained, summary.bytes_up, summary.bytes_down
+                ));
                 anyhow::Ok(())
             }));
         }
@@ -103,7 +134,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 Err(_) => eprintln!("client {shard} did not finish"),
             }
         }
-        println!("{} rounds done; metrics in {}", status.completed_rounds, dir.join(METRICS_FILE).display());
+        println!(
+            "{} rounds done; metrics in {}",
+            status.completed_rounds,
+            dir.join(METRICS_FILE).display()
+        );
         anyhow::Ok(())
     })
 }

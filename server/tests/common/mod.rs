@@ -8,8 +8,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use fedvla_federation::{
-    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, FedAvg,
-    LocalTrainer, NamedTensors, PROTOCOL_VERSION, RoundTask, ServerMessage, TrainOutput, run_client,
+    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput,
+    FedAvg, LocalTrainer, NamedTensors, PROTOCOL_VERSION, RoundTask, ServerMessage, TrainOutput,
+    run_client,
 };
 use fedvla_server::config::{Partitioning, RunConfig};
 use fedvla_server::coordinator::RunStatus;
@@ -92,7 +93,10 @@ impl LocalTrainer for TestTrainer {
             std::future::pending::<()>().await;
         }
         let out = self.inner.train(task).await?;
-        self.recorded.lock().unwrap().push((task.round, out.clone()));
+        self.recorded
+            .lock()
+            .unwrap()
+            .push((task.round, out.clone()));
         Ok(out)
     }
 
@@ -111,7 +115,10 @@ pub fn spawn_client(
     let (mut trainer, recorded) = TestTrainer::new(shard, hang_from_round);
     let task = tokio::spawn(async move {
         let mut transport = NativeTransport::connect(&url).await.expect("connect");
-        let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+        let options = ClientOptions {
+            name: format!("client-{shard}"),
+            auth_token: None,
+        };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await
     });
     (task, recorded)
@@ -133,8 +140,10 @@ pub fn weighted_mean(updates: &[TrainOutput]) -> NamedTensors {
     for (name, t) in updates[0].update.iter() {
         let values = (0..t.values.len())
             .map(|i| {
-                let sum: f64 =
-                    updates.iter().map(|u| u.examples as f64 * f64::from(u.update.get(name).unwrap().values[i])).sum();
+                let sum: f64 = updates
+                    .iter()
+                    .map(|u| u.examples as f64 * f64::from(u.update.get(name).unwrap().values[i]))
+                    .sum();
                 (sum / total) as f32
             })
             .collect();
@@ -159,7 +168,9 @@ pub struct RawClient {
 
 impl RawClient {
     pub async fn connect(handle: &ServerHandle) -> Self {
-        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", handle.addr())).await.unwrap();
+        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", handle.addr()))
+            .await
+            .unwrap();
         Self { ws }
     }
 
@@ -188,9 +199,13 @@ impl RawClient {
     /// Next server message, `None` once closed.
     pub async fn recv(&mut self) -> Option<ServerMessage> {
         loop {
-            let frame = tokio::time::timeout(Duration::from_secs(10), self.ws.next()).await.expect("reply within 10 s");
+            let frame = tokio::time::timeout(Duration::from_secs(10), self.ws.next())
+                .await
+                .expect("reply within 10 s");
             match frame {
-                Some(Ok(Message::Text(t))) => return Some(serde_json::from_str(t.as_str()).unwrap()),
+                Some(Ok(Message::Text(t))) => {
+                    return Some(serde_json::from_str(t.as_str()).unwrap());
+                }
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return None,
                 Some(Ok(_)) => {}
             }
@@ -203,6 +218,9 @@ pub fn join_message(name: &str, protocol_version: u16) -> ClientMessage {
         protocol_version,
         auth_token: None,
         name: name.into(),
-        capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
+        capabilities: Capabilities {
+            backend: "test".into(),
+            memory_bytes: 0,
+        },
     }
 }

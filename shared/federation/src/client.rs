@@ -7,7 +7,10 @@ use std::future::Future;
 
 use crate::codec::{encode_frames, encode_payload};
 use crate::error::{BoxError, TensorError};
-use crate::protocol::{Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage};
+use crate::protocol::{
+    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RoundMetrics, RoundTask,
+    ServerMessage,
+};
 use crate::tensors::NamedTensors;
 
 /// What a round of local training produced.
@@ -68,12 +71,30 @@ pub struct ClientOptions {
 /// Progress notifications, for progress bars and logs.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ClientEvent {
-    Joined { client_id: u64 },
-    Task { round: u64, local_steps: u32 },
-    Trained { round: u64, examples: u64, train_loss: f64 },
-    Uploaded { round: u64, bytes: u64 },
-    RoundClosed { round: u64, accepted: bool },
-    Refused { code: ErrorCode, message: String },
+    Joined {
+        client_id: u64,
+    },
+    Task {
+        round: u64,
+        local_steps: u32,
+    },
+    Trained {
+        round: u64,
+        examples: u64,
+        train_loss: f64,
+    },
+    Uploaded {
+        round: u64,
+        bytes: u64,
+    },
+    RoundClosed {
+        round: u64,
+        accepted: bool,
+    },
+    Refused {
+        code: ErrorCode,
+        message: String,
+    },
 }
 
 /// What a client did over a run.
@@ -111,7 +132,11 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     options: &ClientOptions,
     mut on_event: impl FnMut(ClientEvent),
 ) -> Result<ClientSummary, ClientError> {
-    let mut link = Link { transport, bytes_up: 0, bytes_down: 0 };
+    let mut link = Link {
+        transport,
+        bytes_up: 0,
+        bytes_down: 0,
+    };
     link.send(&ClientMessage::Join {
         protocol_version: PROTOCOL_VERSION,
         auth_token: options.auth_token.clone(),
@@ -120,17 +145,33 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     })
     .await?;
     let (client_id, max_frame_bytes) = match link.recv().await? {
-        ServerMessage::Welcome { client_id, max_frame_bytes, .. } => (client_id, max_frame_bytes as usize),
-        ServerMessage::Error { code, message } => return Err(ClientError::Refused { code, message }),
-        other => return Err(ClientError::Protocol(format!("expected welcome, got {other:?}"))),
+        ServerMessage::Welcome {
+            client_id,
+            max_frame_bytes,
+            ..
+        } => (client_id, max_frame_bytes as usize),
+        ServerMessage::Error { code, message } => {
+            return Err(ClientError::Refused { code, message });
+        }
+        other => {
+            return Err(ClientError::Protocol(format!(
+                "expected welcome, got {other:?}"
+            )));
+        }
     };
     on_event(ClientEvent::Joined { client_id });
-    let mut summary = ClientSummary { client_id, ..ClientSummary::default() };
+    let mut summary = ClientSummary {
+        client_id,
+        ..ClientSummary::default()
+    };
     let mut global: Option<(u64, NamedTensors)> = None;
     loop {
         match link.recv().await? {
             ServerMessage::RoundTask(task) => {
-                on_event(ClientEvent::Task { round: task.round, local_steps: task.local_steps });
+                on_event(ClientEvent::Task {
+                    round: task.round,
+                    local_steps: task.local_steps,
+                });
                 let start = link.transport.now_seconds();
                 let bytes_before = link.bytes_up;
                 let tensors = match global.take() {
@@ -141,11 +182,19 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 global = Some((task.model_version, tensors));
                 if task.eval_request {
                     let eval = trainer.evaluate().await.map_err(ClientError::Trainer)?;
-                    link.send(&ClientMessage::EvalResult { round: task.round, examples: eval.examples, loss: eval.loss })
-                        .await?;
+                    link.send(&ClientMessage::EvalResult {
+                        round: task.round,
+                        examples: eval.examples,
+                        loss: eval.loss,
+                    })
+                    .await?;
                 }
                 let out = trainer.train(&task).await.map_err(ClientError::Trainer)?;
-                on_event(ClientEvent::Trained { round: task.round, examples: out.examples, train_loss: out.train_loss });
+                on_event(ClientEvent::Trained {
+                    round: task.round,
+                    examples: out.examples,
+                    train_loss: out.train_loss,
+                });
                 let payload = encode_payload(&out.update);
                 link.send(&ClientMessage::UpdateHeader {
                     round: task.round,
@@ -156,9 +205,15 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 .await?;
                 for frame in encode_frames(&payload, task.round, max_frame_bytes) {
                     link.bytes_up += frame.len() as u64;
-                    link.transport.send_binary(frame).await.map_err(ClientError::Transport)?;
+                    link.transport
+                        .send_binary(frame)
+                        .await
+                        .map_err(ClientError::Transport)?;
                 }
-                on_event(ClientEvent::Uploaded { round: task.round, bytes: link.bytes_up - bytes_before });
+                on_event(ClientEvent::Uploaded {
+                    round: task.round,
+                    bytes: link.bytes_up - bytes_before,
+                });
                 let seconds = link.transport.now_seconds() - start;
                 let metrics = RoundMetrics {
                     round: task.round,
@@ -171,14 +226,19 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 link.send(&ClientMessage::Metrics(metrics)).await?;
                 summary.rounds_trained += 1;
             }
-            ServerMessage::RoundClosed { round, accepted, .. } => {
+            ServerMessage::RoundClosed {
+                round, accepted, ..
+            } => {
                 on_event(ClientEvent::RoundClosed { round, accepted });
             }
             ServerMessage::Error { code, message } if code.is_fatal() => {
                 return Err(ClientError::Refused { code, message });
             }
             ServerMessage::Error { code, message } => {
-                on_event(ClientEvent::Refused { code, message: message.clone() });
+                on_event(ClientEvent::Refused {
+                    code,
+                    message: message.clone(),
+                });
                 summary.refusals.push((code, message));
             }
             ServerMessage::Finished { .. } => {
@@ -204,20 +264,36 @@ impl<T: ClientTransport> Link<'_, T> {
     async fn send(&mut self, msg: &ClientMessage) -> Result<(), ClientError> {
         let text = serde_json::to_string(msg).expect("client messages serialize");
         self.bytes_up += text.len() as u64;
-        self.transport.send_text(text).await.map_err(ClientError::Transport)
+        self.transport
+            .send_text(text)
+            .await
+            .map_err(ClientError::Transport)
     }
 
     async fn recv(&mut self) -> Result<ServerMessage, ClientError> {
-        let text = self.transport.recv_text().await.map_err(ClientError::Transport)?.ok_or(ClientError::Closed)?;
+        let text = self
+            .transport
+            .recv_text()
+            .await
+            .map_err(ClientError::Transport)?
+            .ok_or(ClientError::Closed)?;
         self.bytes_down += text.len() as u64;
-        serde_json::from_str(&text).map_err(|e| ClientError::Protocol(format!("bad server message: {e}")))
+        serde_json::from_str(&text)
+            .map_err(|e| ClientError::Protocol(format!("bad server message: {e}")))
     }
 
     async fn fetch_model(&mut self, version: u64) -> Result<NamedTensors, ClientError> {
-        let bytes = self.transport.fetch_model(version).await.map_err(ClientError::Transport)?;
+        let bytes = self
+            .transport
+            .fetch_model(version)
+            .await
+            .map_err(ClientError::Transport)?;
         self.bytes_down += bytes.len() as u64;
-        let tensors = NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Model { version, source })?;
-        tensors.validate(&tensors.spec()).map_err(|source| ClientError::Model { version, source })?;
+        let tensors = NamedTensors::from_safetensors(&bytes)
+            .map_err(|source| ClientError::Model { version, source })?;
+        tensors
+            .validate(&tensors.spec())
+            .map_err(|source| ClientError::Model { version, source })?;
         Ok(tensors)
     }
 }

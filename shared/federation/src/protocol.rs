@@ -42,10 +42,19 @@ pub enum ClientMessage {
     /// Keep-alive for idle connections (e.g. behind proxies); the server only notes it.
     Heartbeat,
     /// Announces the binary update frames that follow.
-    UpdateHeader { round: u64, examples: u64, train_loss: f64, payload_bytes: u64 },
+    UpdateHeader {
+        round: u64,
+        examples: u64,
+        train_loss: f64,
+        payload_bytes: u64,
+    },
     Metrics(RoundMetrics),
     /// Loss on the client's own held-out split, when the task asked for it.
-    EvalResult { round: u64, examples: u64, loss: f64 },
+    EvalResult {
+        round: u64,
+        examples: u64,
+        loss: f64,
+    },
 }
 
 /// Parameters the strategy hands to clients (e.g. FedProx's proximal term).
@@ -96,7 +105,10 @@ pub enum ErrorCode {
 impl ErrorCode {
     /// Errors after which the server closes the connection.
     pub fn is_fatal(self) -> bool {
-        matches!(self, Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown)
+        matches!(
+            self,
+            Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown
+        )
     }
 
     pub fn as_str(self) -> &'static str {
@@ -129,11 +141,21 @@ pub enum ServerMessage {
         max_frame_bytes: u32,
     },
     RoundTask(RoundTask),
-    Error { code: ErrorCode, message: String },
+    Error {
+        code: ErrorCode,
+        message: String,
+    },
     /// The round ended; `accepted` is false when it had too few updates and will be retried.
-    RoundClosed { round: u64, accepted: bool, model_version: u64, updates: u32 },
+    RoundClosed {
+        round: u64,
+        accepted: bool,
+        model_version: u64,
+        updates: u32,
+    },
     /// The run is over; the client may disconnect.
-    Finished { rounds: u64 },
+    Finished {
+        rounds: u64,
+    },
 }
 
 #[cfg(test)]
@@ -146,22 +168,41 @@ mod tests {
             protocol_version: PROTOCOL_VERSION,
             auth_token: None,
             name: "c0".into(),
-            capabilities: Capabilities { backend: "ndarray".into(), memory_bytes: 1 << 30 },
+            capabilities: Capabilities {
+                backend: "ndarray".into(),
+                memory_bytes: 1 << 30,
+            },
         };
         let json = serde_json::to_string(&join).unwrap();
-        assert!(json.starts_with(r#"{"type":"join","protocol_version":1"#), "{json}");
+        assert!(
+            json.starts_with(r#"{"type":"join","protocol_version":1"#),
+            "{json}"
+        );
         assert_eq!(serde_json::from_str::<ClientMessage>(&json).unwrap(), join);
 
-        let err = ServerMessage::Error { code: ErrorCode::NonFinite, message: "x".into() };
+        let err = ServerMessage::Error {
+            code: ErrorCode::NonFinite,
+            message: "x".into(),
+        };
         let json = serde_json::to_string(&err).unwrap();
-        assert_eq!(json, r#"{"type":"error","code":"non_finite","message":"x"}"#);
+        assert_eq!(
+            json,
+            r#"{"type":"error","code":"non_finite","message":"x"}"#
+        );
         assert_eq!(serde_json::from_str::<ServerMessage>(&json).unwrap(), err);
     }
 
     #[test]
     fn code_strings_match_serde() {
-        for code in [ErrorCode::ProtocolVersion, ErrorCode::StaleRound, ErrorCode::MalformedFrame] {
-            assert_eq!(serde_json::to_string(&code).unwrap(), format!("\"{}\"", code.as_str()));
+        for code in [
+            ErrorCode::ProtocolVersion,
+            ErrorCode::StaleRound,
+            ErrorCode::MalformedFrame,
+        ] {
+            assert_eq!(
+                serde_json::to_string(&code).unwrap(),
+                format!("\"{}\"", code.as_str())
+            );
         }
     }
 }

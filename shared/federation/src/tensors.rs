@@ -18,7 +18,11 @@ impl Tensor {
     pub fn new(shape: Vec<usize>, values: Vec<f32>) -> Result<Self, TensorError> {
         let expected = shape.iter().product::<usize>();
         if expected != values.len() {
-            return Err(TensorError::LengthMismatch { shape, expected, got: values.len() });
+            return Err(TensorError::LengthMismatch {
+                shape,
+                expected,
+                got: values.len(),
+            });
         }
         Ok(Self { shape, values })
     }
@@ -48,7 +52,8 @@ impl NamedTensors {
         shape: Vec<usize>,
         values: Vec<f32>,
     ) -> Result<(), TensorError> {
-        self.tensors.insert(name.into(), Tensor::new(shape, values)?);
+        self.tensors
+            .insert(name.into(), Tensor::new(shape, values)?);
         Ok(())
     }
 
@@ -103,7 +108,11 @@ impl NamedTensors {
     /// The names and shapes of these tensors.
     pub fn spec(&self) -> TensorSpec {
         TensorSpec {
-            shapes: self.tensors.iter().map(|(n, t)| (n.clone(), t.shape.clone())).collect(),
+            shapes: self
+                .tensors
+                .iter()
+                .map(|(n, t)| (n.clone(), t.shape.clone()))
+                .collect(),
         }
     }
 
@@ -125,7 +134,10 @@ impl NamedTensors {
                 });
             }
             if let Some(index) = t.values.iter().position(|v| !v.is_finite()) {
-                return Err(TensorError::NonFinite { name: name.clone(), index });
+                return Err(TensorError::NonFinite {
+                    name: name.clone(),
+                    index,
+                });
             }
         }
         Ok(())
@@ -136,7 +148,13 @@ impl NamedTensors {
         let bytes: Vec<(&str, Vec<u8>, &[usize])> = self
             .tensors
             .iter()
-            .map(|(n, t)| (n.as_str(), t.values.iter().flat_map(|v| v.to_le_bytes()).collect(), &t.shape[..]))
+            .map(|(n, t)| {
+                (
+                    n.as_str(),
+                    t.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+                    &t.shape[..],
+                )
+            })
             .collect();
         let views = bytes
             .iter()
@@ -151,7 +169,10 @@ impl NamedTensors {
         let mut out = Self::new();
         for (name, view) in st.tensors() {
             if view.dtype() != Dtype::F32 {
-                return Err(TensorError::Dtype { name, dtype: format!("{:?}", view.dtype()) });
+                return Err(TensorError::Dtype {
+                    name,
+                    dtype: format!("{:?}", view.dtype()),
+                });
             }
             let values = view
                 .data()
@@ -185,7 +206,11 @@ impl TensorSpec {
 
     /// Bytes of f32 data a conforming set of tensors holds.
     pub fn byte_size(&self) -> usize {
-        self.shapes.values().map(|s| s.iter().product::<usize>()).sum::<usize>() * size_of::<f32>()
+        self.shapes
+            .values()
+            .map(|s| s.iter().product::<usize>())
+            .sum::<usize>()
+            * size_of::<f32>()
     }
 }
 
@@ -202,8 +227,17 @@ mod tests {
 
     #[test]
     fn insert_checks_length() {
-        let err = NamedTensors::new().insert("x", vec![2, 3], vec![0.0; 5]).unwrap_err();
-        assert!(matches!(err, TensorError::LengthMismatch { expected: 6, got: 5, .. }));
+        let err = NamedTensors::new()
+            .insert("x", vec![2, 3], vec![0.0; 5])
+            .unwrap_err();
+        assert!(matches!(
+            err,
+            TensorError::LengthMismatch {
+                expected: 6,
+                got: 5,
+                ..
+            }
+        ));
     }
 
     #[test]
@@ -221,7 +255,9 @@ mod tests {
         changed.get_mut("b").unwrap().values[1] = -2.0001;
         assert_ne!(t.checksum(), changed.checksum());
         let mut reshaped = t.clone();
-        reshaped.insert("a", vec![4], vec![0.5, 1.5, 2.5, 3.5]).unwrap();
+        reshaped
+            .insert("a", vec![4], vec![0.5, 1.5, 2.5, 3.5])
+            .unwrap();
         assert_ne!(t.checksum(), reshaped.checksum());
         assert_eq!(t.checksum(), sample().checksum());
     }
@@ -231,16 +267,31 @@ mod tests {
         let spec = sample().spec();
         let mut missing = sample();
         missing.tensors.remove("a");
-        assert_eq!(missing.validate(&spec), Err(TensorError::Missing("a".into())));
+        assert_eq!(
+            missing.validate(&spec),
+            Err(TensorError::Missing("a".into()))
+        );
         let mut extra = sample();
         extra.insert("c", vec![1], vec![0.0]).unwrap();
-        assert_eq!(extra.validate(&spec), Err(TensorError::Unexpected("c".into())));
+        assert_eq!(
+            extra.validate(&spec),
+            Err(TensorError::Unexpected("c".into()))
+        );
         let mut shaped = sample();
         shaped.insert("a", vec![4], vec![0.0; 4]).unwrap();
-        assert!(matches!(shaped.validate(&spec), Err(TensorError::ShapeMismatch { .. })));
+        assert!(matches!(
+            shaped.validate(&spec),
+            Err(TensorError::ShapeMismatch { .. })
+        ));
         let mut nan = sample();
         nan.get_mut("b").unwrap().values[1] = f32::NAN;
-        assert_eq!(nan.validate(&spec), Err(TensorError::NonFinite { name: "b".into(), index: 1 }));
+        assert_eq!(
+            nan.validate(&spec),
+            Err(TensorError::NonFinite {
+                name: "b".into(),
+                index: 1
+            })
+        );
         assert_eq!(sample().validate(&spec), Ok(()));
     }
 

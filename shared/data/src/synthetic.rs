@@ -1,7 +1,7 @@
 //! Procedural SO-100-shaped episodes (smooth joint trajectories, gradient images with a moving square):
 //! small, deterministic data for tests, demos and LeRobot compatibility checks, made without the sim.
 
-use crate::video::RgbImage;
+use crate::image::RgbImage;
 use crate::writer::{CameraSpec, Episode, Frame};
 
 /// Episode `episode` of `frames` frames for `cameras`, with `task`; the same arguments give the same data.

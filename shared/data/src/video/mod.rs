@@ -11,64 +11,9 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
+pub use crate::image::RgbImage;
 use crate::error::{DataError, Result};
 use mp4::{Mp4Track, Mp4Writer, TrackCodec};
-
-/// An 8-bit RGB image, height x width x 3 (HWC), row-major.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct RgbImage {
-    pub width: u32,
-    pub height: u32,
-    pub data: Vec<u8>,
-}
-
-impl RgbImage {
-    pub fn new(width: u32, height: u32, data: Vec<u8>) -> Result<Self> {
-        if data.len() != width as usize * height as usize * 3 {
-            return Err(DataError::InvalidInput(format!("{}x{} RGB image needs {} bytes, got {}", width, height, width * height * 3, data.len())));
-        }
-        Ok(Self { width, height, data })
-    }
-
-    /// Mean absolute difference per channel value, in 0..255 units.
-    pub fn mean_abs_diff(&self, other: &RgbImage) -> f64 {
-        let sum: u64 = self.data.iter().zip(&other.data).map(|(a, b)| u64::from(a.abs_diff(*b))).sum();
-        sum as f64 / self.data.len().max(1) as f64
-    }
-
-    /// Box-filter resize: each output pixel averages the source pixels it covers (nearest pixel when
-    /// upscaling), which is what shrinking camera frames to the policy's input size needs.
-    pub fn resized(&self, width: u32, height: u32) -> RgbImage {
-        let (sw, sh) = (self.width as usize, self.height as usize);
-        let (dw, dh) = (width as usize, height as usize);
-        let span = |i: usize, dst: usize, src: usize| {
-            let a = i * src / dst;
-            (a, ((i + 1) * src).div_ceil(dst).clamp(a + 1, src))
-        };
-        let mut data = vec![0u8; dw * dh * 3];
-        for y in 0..dh {
-            let (ya, yb) = span(y, dh, sh);
-            for x in 0..dw {
-                let (xa, xb) = span(x, dw, sw);
-                let mut acc = [0u32; 3];
-                for py in ya..yb {
-                    for px in xa..xb {
-                        let i = (py * sw + px) * 3;
-                        for c in 0..3 {
-                            acc[c] += u32::from(self.data[i + c]);
-                        }
-                    }
-                }
-                let n = ((yb - ya) * (xb - xa)) as u32;
-                let o = (y * dw + x) * 3;
-                for c in 0..3 {
-                    data[o + c] = ((acc[c] + n / 2) / n) as u8;
-                }
-            }
-        }
-        RgbImage { width, height, data }
-    }
-}
 
 /// How camera streams are encoded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

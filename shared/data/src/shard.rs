@@ -1,0 +1,383 @@
+//! Client shards: one client's episodes packed into a single safetensors file for the browser, with
+//! images already resized to the policy's input size (u8), state, the per-frame action table with
+//! episode boundaries (clients cut action chunks themselves, padding like LeRobot), task token ids,
+//! normalization stats, and a JSON manifest. The manifest rides in the file's metadata together with
+//! a SHA-256 of the tensor contents; a sidecar `<name>.manifest.json` adds the file size and the
+//! SHA-256 of the whole file, so a browser can show progress and verify its download.
+//!
+//! Tensors (F frames, E episodes, T tasks, L tokens, D joints):
+//! `observation.images.<cam>` u8 [F,H,W,3]; `observation.state`, `action` f32 [F,D];
+//! `frame_index`, `task_index` i64 [F] (task ids index `manifest.tasks`);
+//! `episodes` i64 [E,4] = (dataset episode index, first row, end row, held out 0/1);
+//! `task_tokens` i64 [T,L] and `task_attention_mask` u8 [T,L] (when a tokenizer was given);
+//! `stats/<feature>/<stat>` f32 [D] for `observation.state` and `action`.
+
+use std::borrow::Cow;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+
+use safetensors::tensor::{Dtype, SafeTensors, View};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::error::{DataError, Result};
+use crate::partition::{Partition, PartitionConfig};
+use crate::reader::LeRobotDataset;
+use crate::stats::FeatureStats;
+
+pub const SHARD_FORMAT: &str = "fedvla-shard/1";
+const MANIFEST_KEY: &str = "fedvla.manifest";
+const VECTOR_FEATURES: [&str; 2] = ["observation.state", "action"];
+
+/// How a shard is built.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ShardSpec {
+    /// The policy's image input size (SmolVLA: 512x512); frames are resized-with-pad to it.
+    pub image_width: u32,
+    pub image_height: u32,
+    /// Token budget per task string (SmolVLA: 48); shorter strings are padded on the right.
+    pub tokenizer_max_length: usize,
+    pub pad_token_id: u32,
+}
+
+/// Describes a shard; stored inside it (safetensors metadata) and in the sidecar file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ShardManifest {
+    pub format: String,
+    pub client_index: usize,
+    pub partition: PartitionConfig,
+    pub robot_type: Option<String>,
+    pub fps: u32,
+    /// Camera feature keys, in tensor order.
+    pub cameras: Vec<String>,
+    pub image_width: u32,
+    pub image_height: u32,
+    pub state_dim: usize,
+    pub action_dim: usize,
+    pub num_frames: usize,
+    pub train_episodes: Vec<usize>,
+    pub held_out_episodes: Vec<usize>,
+    /// Task strings; `task_index` values index this list.
+    pub tasks: Vec<String>,
+    pub tokenized: bool,
+    pub tokenizer_max_length: usize,
+    /// SHA-256 (hex) over the tensors in name order (name, dtype, shape, bytes).
+    pub content_sha256: String,
+}
+
+/// The sidecar `<name>.manifest.json`: what a browser fetches first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ShardFileManifest {
+    /// File name of the shard, next to this manifest.
+    pub file: String,
+    pub file_bytes: u64,
+    pub file_sha256: String,
+    pub manifest: ShardManifest,
+}
+
+/// One episode inside a shard: rows `[start, end)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ShardEpisode {
+    pub episode_index: usize,
+    pub start: usize,
+    pub end: usize,
+    pub held_out: bool,
+}
+
+/// A shard read back and verified.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ClientShard {
+    pub manifest: ShardManifest,
+    /// By camera key: u8 [F, H, W, 3].
+    pub images: BTreeMap<String, Vec<u8>>,
+    pub state: Vec<f32>,
+    pub action: Vec<f32>,
+    pub frame_index: Vec<i64>,
+    pub task_index: Vec<i64>,
+    pub episodes: Vec<ShardEpisode>,
+    /// [T, L] token ids and attention mask, when tokenized.
+    pub task_tokens: Option<(Vec<i64>, Vec<u8>)>,
+    /// `stats[feature][stat]`.
+    pub stats: BTreeMap<String, BTreeMap<String, Vec<f32>>>,
+}
+
+struct OwnedTensor {
+    dtype: Dtype,
+    shape: Vec<usize>,
+    data: Vec<u8>,
+}
+
+impl View for &OwnedTensor {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+    fn data(&self) -> Cow<'_, [u8]> {
+        Cow::Borrowed(&self.data)
+    }
+    fn data_len(&self) -> usize {
+        self.data.len()
+    }
+}
+
+fn f32_tensor(values: &[f32], shape: Vec<usize>) -> OwnedTensor {
+    OwnedTensor { dtype: Dtype::F32, shape, data: values.iter().flat_map(|v| v.to_le_bytes()).collect() }
+}
+
+fn i64_tensor(values: &[i64], shape: Vec<usize>) -> OwnedTensor {
+    OwnedTensor { dtype: Dtype::I64, shape, data: values.iter().flat_map(|v| v.to_le_bytes()).collect() }
+}
+
+/// SHA-256 over (name, dtype, shape, bytes) of each tensor, in name order: independent of file layout.
+fn content_hash<'a>(tensors: impl Iterator<Item = (&'a str, Dtype, &'a [usize], &'a [u8])>) -> String {
+    let mut sorted: Vec<_> = tensors.collect();
+    sorted.sort_by(|a, b| a.0.cmp(b.0));
+    let mut hasher = Sha256::new();
+    for (name, dtype, shape, data) in sorted {
+        hasher.update(name.as_bytes());
+        hasher.update([0]);
+        hasher.update(format!("{dtype:?}").as_bytes());
+        for d in shape {
+            hasher.update((*d as u64).to_le_bytes());
+        }
+        hasher.update((data.len() as u64).to_le_bytes());
+        hasher.update(data);
+    }
+    hex(&hasher.finalize())
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Builds client `client`'s shard of `partition` from `dataset` at `out` (a `.safetensors` path) and
+/// writes the sidecar manifest next to it. `tokenize` turns a task string into token ids.
+pub fn build_shard(
+    dataset: &LeRobotDataset,
+    partition: &Partition,
+    client: usize,
+    spec: &ShardSpec,
+    tokenize: Option<&dyn Fn(&str) -> Vec<u32>>,
+    out: &Path,
+) -> Result<ShardFileManifest> {
+    let split = partition
+        .clients
+        .get(client)
+        .ok_or_else(|| DataError::InvalidInput(format!("client {client} is not in the partition ({} clients)", partition.clients.len())))?;
+    let held_out: std::collections::BTreeSet<usize> = split.held_out.iter().copied().collect();
+    let mut episode_ids: Vec<usize> = split.all().collect();
+    episode_ids.sort_unstable();
+    let by_index: HashMap<usize, &crate::reader::EpisodeMeta> = dataset.episodes().iter().map(|e| (e.episode_index, e)).collect();
+    let cameras = dataset.camera_keys();
+    let dims: Vec<usize> = VECTOR_FEATURES
+        .iter()
+        .map(|k| dataset.info().features.get(k).map(crate::info::Feature::width).ok_or_else(|| DataError::InvalidInput(format!("dataset has no {k} feature"))))
+        .collect::<Result<_>>()?;
+
+    let mut images: Vec<Vec<u8>> = vec![Vec::new(); cameras.len()];
+    let mut vectors: Vec<Vec<f32>> = vec![Vec::new(); VECTOR_FEATURES.len()];
+    let (mut frame_index, mut task_rows, mut episode_rows) = (Vec::new(), Vec::new(), Vec::new());
+    let mut tasks: Vec<String> = Vec::new();
+    let mut rows = 0usize;
+    for ep_id in &episode_ids {
+        let episode = by_index
+            .get(ep_id)
+            .ok_or_else(|| DataError::InvalidInput(format!("episode {ep_id} of the partition is not in the dataset")))?;
+        let indices: Vec<usize> = (episode.dataset_from_index..episode.dataset_to_index).collect();
+        for (c, camera) in cameras.iter().enumerate() {
+            for frame in dataset.camera_frames(camera, episode, &indices)? {
+                images[c].extend_from_slice(&frame.resized_with_pad(spec.image_width, spec.image_height).data);
+            }
+        }
+        for &i in &indices {
+            for (k, key) in VECTOR_FEATURES.iter().enumerate() {
+                let row = dataset.vector(key, i).ok_or(DataError::IndexOutOfRange { index: i, len: dataset.len() })?;
+                vectors[k].extend_from_slice(row);
+            }
+            let task = dataset.task_index(i).and_then(|t| dataset.tasks().get(t)).cloned().unwrap_or_default();
+            let local = tasks.iter().position(|t| *t == task).unwrap_or_else(|| {
+                tasks.push(task);
+                tasks.len() - 1
+            });
+            task_rows.push(local as i64);
+            frame_index.push((i - episode.dataset_from_index) as i64);
+        }
+        episode_rows.extend([*ep_id as i64, rows as i64, (rows + indices.len()) as i64, i64::from(held_out.contains(ep_id))]);
+        rows += indices.len();
+    }
+
+    let mut tensors: BTreeMap<String, OwnedTensor> = BTreeMap::new();
+    let (w, h) = (spec.image_width as usize, spec.image_height as usize);
+    for (camera, data) in cameras.iter().zip(images) {
+        tensors.insert(camera.clone(), OwnedTensor { dtype: Dtype::U8, shape: vec![rows, h, w, 3], data });
+    }
+    for ((key, values), dim) in VECTOR_FEATURES.iter().zip(&vectors).zip(&dims) {
+        tensors.insert((*key).to_string(), f32_tensor(values, vec![rows, *dim]));
+        let stats = match dataset.stats().and_then(|s| s.get(*key)) {
+            Some(s) => s.clone(),
+            None => {
+                let all: Vec<Vec<f64>> = (0..dataset.len()).filter_map(|i| dataset.vector(key, i)).map(|r| r.iter().map(|&v| f64::from(v)).collect()).collect();
+                FeatureStats::from_rows(&all, *dim)
+            }
+        };
+        for (name, values) in stats.named_values() {
+            if values.len() == *dim {
+                let as_f32: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+                tensors.insert(format!("stats/{key}/{name}"), f32_tensor(&as_f32, vec![*dim]));
+            }
+        }
+    }
+    tensors.insert("frame_index".into(), i64_tensor(&frame_index, vec![rows]));
+    tensors.insert("task_index".into(), i64_tensor(&task_rows, vec![rows]));
+    tensors.insert("episodes".into(), i64_tensor(&episode_rows, vec![episode_ids.len(), 4]));
+    if let Some(tokenize) = tokenize {
+        let l = spec.tokenizer_max_length;
+        let (mut ids, mut mask) = (Vec::with_capacity(tasks.len() * l), Vec::with_capacity(tasks.len() * l));
+        for task in &tasks {
+            let tokens = tokenize(task);
+            for p in 0..l {
+                ids.push(i64::from(tokens.get(p).copied().unwrap_or(spec.pad_token_id)));
+                mask.push(u8::from(p < tokens.len()));
+            }
+        }
+        tensors.insert("task_tokens".into(), i64_tensor(&ids, vec![tasks.len(), l]));
+        tensors.insert("task_attention_mask".into(), OwnedTensor { dtype: Dtype::U8, shape: vec![tasks.len(), l], data: mask });
+    }
+
+    let manifest = ShardManifest {
+        format: SHARD_FORMAT.into(),
+        client_index: client,
+        partition: partition.config,
+        robot_type: dataset.info().robot_type.clone(),
+        fps: dataset.fps(),
+        cameras,
+        image_width: spec.image_width,
+        image_height: spec.image_height,
+        state_dim: dims[0],
+        action_dim: dims[1],
+        num_frames: rows,
+        train_episodes: split.train.clone(),
+        held_out_episodes: split.held_out.clone(),
+        tasks,
+        tokenized: tokenize.is_some(),
+        tokenizer_max_length: spec.tokenizer_max_length,
+        content_sha256: content_hash(tensors.iter().map(|(n, t)| (n.as_str(), t.dtype, t.shape.as_slice(), t.data.as_slice()))),
+    };
+    let manifest_json = serde_json::to_string(&manifest).map_err(|e| DataError::InvalidInput(e.to_string()))?;
+    let bytes = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(HashMap::from([(MANIFEST_KEY.to_string(), manifest_json)])))
+        .map_err(|e| DataError::BadShard { path: out.to_path_buf(), reason: e.to_string() })?;
+    if let Some(dir) = out.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
+    }
+    std::fs::write(out, &bytes).map_err(|e| DataError::io(out, e))?;
+    let file_manifest = ShardFileManifest {
+        file: out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+        file_bytes: bytes.len() as u64,
+        file_sha256: hex(&Sha256::digest(&bytes)),
+        manifest,
+    };
+    crate::info::write_json(&sidecar_path(out), &file_manifest)?;
+    Ok(file_manifest)
+}
+
+/// `client-000.safetensors` -> `client-000.manifest.json`.
+pub fn sidecar_path(shard: &Path) -> PathBuf {
+    shard.with_extension("manifest.json")
+}
+
+/// Checks a downloaded shard file against its sidecar manifest (size, then SHA-256 of the whole file).
+pub fn verify_shard_file(path: &Path, expected: &ShardFileManifest) -> Result<()> {
+    let bytes = std::fs::read(path).map_err(|e| DataError::io(path, e))?;
+    if bytes.len() as u64 != expected.file_bytes {
+        return Err(DataError::BadShard { path: path.to_path_buf(), reason: format!("{} bytes, the manifest says {}", bytes.len(), expected.file_bytes) });
+    }
+    let actual = hex(&Sha256::digest(&bytes));
+    if actual != expected.file_sha256 {
+        return Err(DataError::ChecksumMismatch { path: path.to_path_buf(), expected: expected.file_sha256.clone(), actual });
+    }
+    Ok(())
+}
+
+impl ClientShard {
+    /// Reads a shard and verifies its content checksum against its embedded manifest.
+    pub fn read(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(|e| DataError::io(path, e))?;
+        Self::from_bytes(path, &bytes)
+    }
+
+    /// Parses shard bytes (`path` only names the source in errors).
+    pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
+        let bad = |reason: String| DataError::BadShard { path: path.to_path_buf(), reason };
+        let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| bad(e.to_string()))?;
+        let manifest_json = metadata.metadata().as_ref().and_then(|m| m.get(MANIFEST_KEY)).ok_or_else(|| bad("no manifest in the metadata".into()))?;
+        let manifest: ShardManifest = serde_json::from_str(manifest_json).map_err(|e| bad(format!("manifest: {e}")))?;
+        if manifest.format != SHARD_FORMAT {
+            return Err(bad(format!("format {:?}, expected {SHARD_FORMAT:?}", manifest.format)));
+        }
+        let st = SafeTensors::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
+        let views = st.tensors();
+        let actual = content_hash(views.iter().map(|(n, v)| (n.as_str(), v.dtype(), v.shape(), v.data())));
+        if actual != manifest.content_sha256 {
+            return Err(DataError::ChecksumMismatch { path: path.to_path_buf(), expected: manifest.content_sha256.clone(), actual });
+        }
+        let raw = |name: &str, dtype: Dtype| -> Result<&[u8]> {
+            let view = views.iter().find(|(n, _)| n == name).map(|(_, v)| v).ok_or_else(|| bad(format!("tensor {name} missing")))?;
+            if view.dtype() != dtype {
+                return Err(bad(format!("tensor {name} is {:?}, expected {dtype:?}", view.dtype())));
+            }
+            Ok(view.data())
+        };
+        let f32s = |name: &str| -> Result<Vec<f32>> {
+            Ok(raw(name, Dtype::F32)?.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+        };
+        let i64s = |name: &str| -> Result<Vec<i64>> {
+            Ok(raw(name, Dtype::I64)?.chunks_exact(8).map(|c| i64::from_le_bytes(c.try_into().unwrap_or([0; 8]))).collect())
+        };
+        let images = manifest.cameras.iter().map(|c| Ok((c.clone(), raw(c, Dtype::U8)?.to_vec()))).collect::<Result<_>>()?;
+        let episodes = i64s("episodes")?
+            .chunks_exact(4)
+            .map(|r| ShardEpisode { episode_index: r[0] as usize, start: r[1] as usize, end: r[2] as usize, held_out: r[3] != 0 })
+            .collect();
+        let task_tokens = if manifest.tokenized { Some((i64s("task_tokens")?, raw("task_attention_mask", Dtype::U8)?.to_vec())) } else { None };
+        let mut stats: BTreeMap<String, BTreeMap<String, Vec<f32>>> = BTreeMap::new();
+        for (name, _) in &views {
+            if let Some((feature, stat)) = name.strip_prefix("stats/").and_then(|s| s.rsplit_once('/')) {
+                stats.entry(feature.to_string()).or_default().insert(stat.to_string(), f32s(name)?);
+            }
+        }
+        Ok(ClientShard {
+            state: f32s("observation.state")?,
+            action: f32s("action")?,
+            frame_index: i64s("frame_index")?,
+            task_index: i64s("task_index")?,
+            images,
+            episodes,
+            task_tokens,
+            stats,
+            manifest,
+        })
+    }
+
+    /// Row `row`'s `horizon` actions ahead within its episode, past-the-end steps repeating the last
+    /// action, and the matching `action_is_pad` flags (LeRobot's chunk semantics).
+    pub fn action_chunk(&self, row: usize, horizon: usize) -> Option<(Vec<f32>, Vec<bool>)> {
+        let episode = self.episodes.iter().find(|e| e.start <= row && row < e.end)?;
+        let d = self.manifest.action_dim;
+        let mut values = Vec::with_capacity(horizon * d);
+        let mut pad = Vec::with_capacity(horizon);
+        for k in 0..horizon {
+            let r = (row + k).min(episode.end - 1);
+            values.extend_from_slice(&self.action[r * d..(r + 1) * d]);
+            pad.push(row + k >= episode.end);
+        }
+        Some((values, pad))
+    }
+
+    /// Camera `camera`'s image at `row` (u8 HWC at the shard's image size).
+    pub fn image(&self, camera: &str, row: usize) -> Option<&[u8]> {
+        let size = self.manifest.image_width as usize * self.manifest.image_height as usize * 3;
+        self.images.get(camera)?.get(row * size..(row + 1) * size)
+    }
+}

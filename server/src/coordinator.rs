@@ -136,8 +136,10 @@ impl Coordinator {
             round_rejections: BTreeMap::new(),
         };
         let result = this.run().await;
-        if let Err(e) = &result {
-            tracing::warn!(error = %e, "coordinator stopped");
+        match &result {
+            Err(CoordinatorError::Cancelled) => tracing::info!("coordinator cancelled"),
+            Err(e) => tracing::error!(error = %e, "coordinator stopped"),
+            Ok(_) => {}
         }
         result
     }

@@ -39,7 +39,7 @@ async fn straggler_and_dropped_client_do_not_stall_the_round() {
         "closed at the deadline, not before: {elapsed:?}"
     );
     assert!(
-        elapsed < Duration::from_secs(5),
+        elapsed < Duration::from_secs(8),
         "closed at the deadline, not after: {elapsed:?}"
     );
     straggler.abort();

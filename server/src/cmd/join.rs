@@ -1,6 +1,6 @@
 //! `fedvla join URL`: a native client.
 
-use fedvla_federation::{ClientEvent, ClientOptions, run_client};
+use fedvla_federation::{ClientError, ClientEvent, ClientOptions, ErrorCode, run_client};
 use fedvla_server::config::Partitioning;
 use fedvla_server::linreg::LinRegTrainer;
 use fedvla_server::native_client::NativeTransport;
@@ -34,7 +34,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let mut transport = NativeTransport::connect(&args.url)
             .await
             .map_err(|e| anyhow::anyhow!(e))?;
-        let summary = run_client(
+        let result = run_client(
             &mut transport,
             &mut trainer,
             &options,
@@ -52,7 +52,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 other => tracing::info!(?other),
             },
         )
-        .await?;
+        .await;
+        let summary = match result {
+            Err(ClientError::Refused {
+                code: ErrorCode::ShuttingDown,
+                ..
+            }) => {
+                tracing::info!("the server shut down before the run finished");
+                return Ok(());
+            }
+            other => other?,
+        };
         tracing::info!(
             rounds = summary.rounds_trained,
             bytes_up = summary.bytes_up,

@@ -78,14 +78,6 @@ pub fn solve(base: Pose, start: &[f32; JOINT_COUNT], target: &GripperTarget) -> 
     q
 }
 
-/// Remaining error of `q` against `target`: position (m) and orientation (rad).
-pub fn residual(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> (f32, f32) {
-    let e = error(base, q, target);
-    let position = Vec3::new(e[0], e[1], e[2]).length();
-    let orientation = Vec3::new(e[3], e[4], e[5]).length() / ORIENTATION_WEIGHT;
-    (position, orientation)
-}
-
 fn norm(v: &[f32]) -> f32 {
     v.iter().map(|x| x * x).sum::<f32>().sqrt()
 }
@@ -98,8 +90,9 @@ fn solve_linear<const N: usize>(mut a: [[f32; N]; N], mut b: [f32; N]) -> [f32; 
         b.swap(col, pivot);
         for row in col + 1..N {
             let factor = a[row][col] / a[col][col];
-            for k in col..N {
-                a[row][k] -= factor * a[col][k];
+            let pivot_row = a[col];
+            for (entry, pivot_entry) in a[row].iter_mut().zip(pivot_row).skip(col) {
+                *entry -= factor * pivot_entry;
             }
             b[row] -= factor * b[col];
         }
@@ -116,6 +109,14 @@ fn solve_linear<const N: usize>(mut a: [[f32; N]; N], mut b: [f32; N]) -> [f32; 
 mod tests {
     use super::*;
     use crate::scene::HOME;
+
+/// Remaining error of `q` against `target`: position (m) and orientation (rad).
+fn residual(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> (f32, f32) {
+    let e = error(base, q, target);
+    let position = Vec3::new(e[0], e[1], e[2]).length();
+    let orientation = Vec3::new(e[3], e[4], e[5]).length() / ORIENTATION_WEIGHT;
+    (position, orientation)
+}
 
     #[test]
     fn reaches_a_pose_produced_by_forward_kinematics() {

@@ -54,9 +54,9 @@ const TABLE_CENTER_Y: f32 = -0.15;
 
 /// A body with the primitives that make it up, for rendering.
 #[derive(Clone, Debug)]
-pub struct Visual {
-    pub body: RigidBodyHandle,
-    pub parts: Vec<Part>,
+struct Visual {
+    body: RigidBodyHandle,
+    parts: Vec<Part>,
 }
 
 /// The whole simulated scene for one episode.

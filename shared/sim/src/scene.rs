@@ -247,7 +247,7 @@ impl Scene {
     }
 
     /// Starts holding the cube when the jaw presses it onto the fixed finger, and lets go
-    /// once the jaw opens off it.
+    /// as soon as the gripper is told to open.
     fn update_grip(&mut self, jaw_penetration: f32) {
         match self.grip {
             None if jaw_penetration > GRIP_SQUEEZE && self.deepest_contact(&self.finger_colliders) > -TOUCHING => {
@@ -256,7 +256,7 @@ impl Scene {
                 let hold = FixedJointBuilder::new().local_frame1(relative).local_frame2(Pose::IDENTITY);
                 self.grip = Some(self.world.impulse_joints.insert(gripper, self.cube, hold, true));
             }
-            Some(hold) if jaw_penetration < GRIP_SQUEEZE * 0.5 => {
+            Some(hold) if self.servos[GRIPPER].goal > self.servos[GRIPPER].position => {
                 self.world.impulse_joints.remove(hold, true);
                 self.grip = None;
             }

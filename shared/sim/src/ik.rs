@@ -36,7 +36,9 @@ fn error(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> [f32; 6]
         turn = -turn;
     }
     let rotation = turn.to_scaled_axis() * ORIENTATION_WEIGHT;
-    [position.x, position.y, position.z, rotation.x, rotation.y, rotation.z]
+    [
+        position.x, position.y, position.z, rotation.x, rotation.y, rotation.z,
+    ]
 }
 
 /// Joint angles (radians) reaching `target`, starting the search from `start`; the gripper
@@ -85,7 +87,9 @@ fn norm(v: &[f32]) -> f32 {
 /// Gaussian elimination with partial pivoting for the small symmetric positive system.
 fn solve_linear<const N: usize>(mut a: [[f32; N]; N], mut b: [f32; N]) -> [f32; N] {
     for col in 0..N {
-        let pivot = (col..N).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs())).unwrap_or(col);
+        let pivot = (col..N)
+            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
+            .unwrap_or(col);
         a.swap(col, pivot);
         b.swap(col, pivot);
         for row in col + 1..N {
@@ -110,13 +114,13 @@ mod tests {
     use super::*;
     use crate::scene::HOME;
 
-/// Remaining error of `q` against `target`: position (m) and orientation (rad).
-fn residual(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> (f32, f32) {
-    let e = error(base, q, target);
-    let position = Vec3::new(e[0], e[1], e[2]).length();
-    let orientation = Vec3::new(e[3], e[4], e[5]).length() / ORIENTATION_WEIGHT;
-    (position, orientation)
-}
+    /// Remaining error of `q` against `target`: position (m) and orientation (rad).
+    fn residual(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> (f32, f32) {
+        let e = error(base, q, target);
+        let position = Vec3::new(e[0], e[1], e[2]).length();
+        let orientation = Vec3::new(e[3], e[4], e[5]).length() / ORIENTATION_WEIGHT;
+        (position, orientation)
+    }
 
     #[test]
     fn reaches_a_pose_produced_by_forward_kinematics() {
@@ -130,6 +134,9 @@ fn residual(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> (f32,
         };
         let q = solve(Pose::IDENTITY, &HOME, &target);
         let (position, orientation) = residual(Pose::IDENTITY, &q, &target);
-        assert!(position < 1e-3 && orientation < 1e-2, "{position} m, {orientation} rad");
+        assert!(
+            position < 1e-3 && orientation < 1e-2,
+            "{position} m, {orientation} rad"
+        );
     }
 }

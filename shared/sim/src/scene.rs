@@ -20,8 +20,8 @@ use crate::shape::{Part, Rgb};
 use crate::task::{self, BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, Layout};
 use rapier3d::math::{Pose, Rot3, Vec3};
 use rapier3d::prelude::{
-    ColliderHandle, ContactPair, FixedJointBuilder, ImpulseJointHandle, PhysicsWorld, RigidBodyBuilder,
-    RigidBodyHandle, RigidBodyType,
+    ColliderHandle, ContactPair, FixedJointBuilder, ImpulseJointHandle, PhysicsWorld,
+    RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
 };
 use std::f32::consts::FRAC_PI_2;
 
@@ -97,7 +97,13 @@ impl Scene {
             Vec3::new(TABLE_HALF[0], TABLE_HALF[1], 0.02),
             TABLE_COLOR,
         )];
-        add_body(&mut world, &mut visuals, RigidBodyBuilder::fixed(), table_parts, 0.6);
+        add_body(
+            &mut world,
+            &mut visuals,
+            RigidBodyBuilder::fixed(),
+            table_parts,
+            0.6,
+        );
         add_body(
             &mut world,
             &mut visuals,
@@ -140,7 +146,14 @@ impl Scene {
             <[RigidBodyHandle; LINK_COUNT]>::try_from(handles).expect("one body per link")
         };
         let servos = std::array::from_fn(|i| {
-            Servo::new(HOME[i], if i == GRIPPER { GRIPPER_MAX_SPEED } else { ARM_MAX_SPEED })
+            Servo::new(
+                HOME[i],
+                if i == GRIPPER {
+                    GRIPPER_MAX_SPEED
+                } else {
+                    ARM_MAX_SPEED
+                },
+            )
         });
         Self {
             world,
@@ -233,12 +246,18 @@ impl Scene {
 
     /// Everything to draw, with each body's current pose.
     pub fn visuals(&self) -> impl Iterator<Item = (Pose, &[Part])> {
-        self.visuals.iter().map(|visual| (*self.world.bodies[visual.body].position(), visual.parts.as_slice()))
+        self.visuals.iter().map(|visual| {
+            (
+                *self.world.bodies[visual.body].position(),
+                visual.parts.as_slice(),
+            )
+        })
     }
 
     /// Whether any arm collider is in contact with the cube.
     pub fn arm_touches_cube(&self) -> bool {
-        self.cube_contacts(&self.arm_colliders).any(|pair| pair.has_any_active_contact())
+        self.cube_contacts(&self.arm_colliders)
+            .any(|pair| pair.has_any_active_contact())
     }
 
     /// Whether the cube is held by the gripper (see the module notes on grasping).
@@ -250,11 +269,21 @@ impl Scene {
     /// as soon as the gripper is told to open.
     fn update_grip(&mut self, jaw_penetration: f32) {
         match self.grip {
-            None if jaw_penetration > GRIP_SQUEEZE && self.deepest_contact(&self.finger_colliders) > -TOUCHING => {
+            None if jaw_penetration > GRIP_SQUEEZE
+                && self.deepest_contact(&self.finger_colliders) > -TOUCHING =>
+            {
                 let gripper = self.links[GRIPPER_LINK];
-                let relative = self.world.bodies[gripper].position().inv_mul(&self.cube_pose());
-                let hold = FixedJointBuilder::new().local_frame1(relative).local_frame2(Pose::IDENTITY);
-                self.grip = Some(self.world.impulse_joints.insert(gripper, self.cube, hold, true));
+                let relative = self.world.bodies[gripper]
+                    .position()
+                    .inv_mul(&self.cube_pose());
+                let hold = FixedJointBuilder::new()
+                    .local_frame1(relative)
+                    .local_frame2(Pose::IDENTITY);
+                self.grip = Some(
+                    self.world
+                        .impulse_joints
+                        .insert(gripper, self.cube, hold, true),
+                );
             }
             Some(hold) if self.servos[GRIPPER].goal > self.servos[GRIPPER].position => {
                 self.world.impulse_joints.remove(hold, true);
@@ -279,10 +308,16 @@ impl Scene {
     }
 
     /// Contact pairs between the cube and any of `colliders`.
-    fn cube_contacts<'a>(&'a self, colliders: &'a [ColliderHandle]) -> impl Iterator<Item = &'a ContactPair> {
-        self.world.narrow_phase.contact_pairs_with(self.cube_collider).filter(move |pair| {
-            colliders.contains(&pair.collider1) || colliders.contains(&pair.collider2)
-        })
+    fn cube_contacts<'a>(
+        &'a self,
+        colliders: &'a [ColliderHandle],
+    ) -> impl Iterator<Item = &'a ContactPair> {
+        self.world
+            .narrow_phase
+            .contact_pairs_with(self.cube_collider)
+            .filter(move |pair| {
+                colliders.contains(&pair.collider1) || colliders.contains(&pair.collider2)
+            })
     }
 }
 
@@ -301,11 +336,19 @@ fn add_body(
         .iter()
         .map(|part| {
             // Wood-like density for the cube; other bodies are fixed or kinematic.
-            let collider = part.collider().friction(friction).density(if is_dynamic { 600.0 } else { 0.0 });
-            world.colliders.insert_with_parent(collider, handle, &mut world.bodies)
+            let collider =
+                part.collider()
+                    .friction(friction)
+                    .density(if is_dynamic { 600.0 } else { 0.0 });
+            world
+                .colliders
+                .insert_with_parent(collider, handle, &mut world.bodies)
         })
         .collect();
-    visuals.push(Visual { body: handle, parts });
+    visuals.push(Visual {
+        body: handle,
+        parts,
+    });
     (handle, colliders)
 }
 
@@ -314,13 +357,22 @@ fn bowl_parts() -> Vec<Part> {
     let outer = BOWL_INNER_RADIUS + BOWL_WALL;
     // Rapier cylinders stand along local y; turn it to stand along z.
     let upright = Rot3::from_rotation_x(FRAC_PI_2);
-    let mut parts =
-        vec![Part::cylinder(Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5), upright, BOWL_FLOOR * 0.5, outer, BOWL_COLOR)];
+    let mut parts = vec![Part::cylinder(
+        Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5),
+        upright,
+        BOWL_FLOOR * 0.5,
+        outer,
+        BOWL_COLOR,
+    )];
     let segment_half_length = outer * (std::f32::consts::PI / BOWL_SEGMENTS as f32).tan();
     for k in 0..BOWL_SEGMENTS {
         let angle = k as f32 * std::f32::consts::TAU / BOWL_SEGMENTS as f32;
         let radial = BOWL_INNER_RADIUS + BOWL_WALL * 0.5;
-        let center = Vec3::new(angle.cos() * radial, angle.sin() * radial, BOWL_HEIGHT * 0.5);
+        let center = Vec3::new(
+            angle.cos() * radial,
+            angle.sin() * radial,
+            BOWL_HEIGHT * 0.5,
+        );
         let mut wall = Part::cuboid(
             Vec3::ZERO,
             Vec3::new(BOWL_WALL * 0.5, segment_half_length, BOWL_HEIGHT * 0.5),

@@ -22,7 +22,11 @@ pub struct Servo {
 
 impl Servo {
     pub fn new(position: f32, max_speed: f32) -> Self {
-        Self { position, goal: position, max_speed }
+        Self {
+            position,
+            goal: position,
+            max_speed,
+        }
     }
 
     /// Moves towards the goal for `dt` seconds. A stalled servo holds its position rather than

@@ -60,8 +60,8 @@ impl Camera {
         match self {
             // In front of the arm, above the table, looking down at the workspace.
             Camera::Top => CameraView::looking_at(
-                Vec3::new(0.0, -0.5, 0.42),
-                Vec3::new(0.0, -0.19, 0.0),
+                Vec3::new(0.0, -0.58, 0.42),
+                Vec3::new(0.0, -0.14, 0.07),
                 Vec3::Z,
                 55f32.to_radians(),
             ),

@@ -68,3 +68,11 @@ fn same_seed_gives_identical_trajectory() {
     let other = run_expert_episode(6, MAX_FRAMES);
     assert_ne!(first.states, other.states);
 }
+
+/// Data generation runs one scene per worker thread natively.
+#[test]
+fn scene_and_expert_can_move_to_another_thread() {
+    fn assert_send<T: Send>() {}
+    assert_send::<fedvla_sim::Scene>();
+    assert_send::<fedvla_sim::Expert>();
+}

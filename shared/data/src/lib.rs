@@ -18,7 +18,7 @@ pub use error::{DataError, Result};
 pub use info::{CodebaseVersion, DatasetInfo, Feature, Features};
 pub use partition::{ClientSplit, EpisodeTask, Partition, PartitionConfig, PartitionStrategy, episode_tasks, partition};
 pub use reader::{DeltaTimestamps, EpisodeMeta, EpisodeVideo, LeRobotDataset, Sample};
-pub use shard::{ClientShard, ShardEpisode, ShardFileManifest, ShardManifest, ShardSpec, build_shard, verify_shard_file};
+pub use shard::{ClientShard, ShardEpisode, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, build_shard, verify_shard_file};
 pub use stats::{DatasetStats, FeatureStats};
 pub use image::RgbImage;
 pub use video::VideoEncoding;

@@ -251,6 +251,15 @@ impl LeRobotDataset {
     }
 }
 
+/// One camera's `videos/<key>/*` columns of an episodes file.
+struct VideoColumns {
+    key: String,
+    chunk: Vec<i64>,
+    file: Vec<i64>,
+    from_timestamp: Vec<f64>,
+    to_timestamp: Vec<f64>,
+}
+
 /// v3.0: tasks.parquet, meta/episodes/**.parquet, data files referenced by the episodes.
 fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
     let tasks_table = Table::read(&root.join("meta/tasks.parquet"))?;
@@ -276,16 +285,18 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
         let to = t.i64_column("dataset_to_index")?;
         let data_chunk = t.i64_column("data/chunk_index")?;
         let data_file = t.i64_column("data/file_index")?;
-        let mut videos: Vec<(String, Vec<i64>, Vec<i64>, Vec<f64>, Vec<f64>)> = Vec::new();
-        for key in &video_keys {
-            videos.push((
-                key.clone(),
-                t.i64_column(&format!("videos/{key}/chunk_index"))?,
-                t.i64_column(&format!("videos/{key}/file_index"))?,
-                t.f64_column(&format!("videos/{key}/from_timestamp"))?,
-                t.f64_column(&format!("videos/{key}/to_timestamp"))?,
-            ));
-        }
+        let videos = video_keys
+            .iter()
+            .map(|key| {
+                Ok(VideoColumns {
+                    key: key.clone(),
+                    chunk: t.i64_column(&format!("videos/{key}/chunk_index"))?,
+                    file: t.i64_column(&format!("videos/{key}/file_index"))?,
+                    from_timestamp: t.f64_column(&format!("videos/{key}/from_timestamp"))?,
+                    to_timestamp: t.f64_column(&format!("videos/{key}/to_timestamp"))?,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
         for row in 0..t.num_rows() {
             if !data_files.contains(&(data_chunk[row], data_file[row])) {
                 data_files.push((data_chunk[row], data_file[row]));
@@ -298,9 +309,9 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
                 dataset_to_index: to[row] as usize,
                 videos: videos
                     .iter()
-                    .map(|(key, chunk, file, from_ts, to_ts)| {
-                        let path = info::v30_path(root, &video_template, chunk[row] as u64, file[row] as u64, Some(key));
-                        (key.clone(), EpisodeVideo { path, from_timestamp: from_ts[row], to_timestamp: to_ts[row] })
+                    .map(|v| {
+                        let path = info::v30_path(root, &video_template, v.chunk[row] as u64, v.file[row] as u64, Some(&v.key));
+                        (v.key.clone(), EpisodeVideo { path, from_timestamp: v.from_timestamp[row], to_timestamp: v.to_timestamp[row] })
                     })
                     .collect(),
             });

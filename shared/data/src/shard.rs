@@ -29,6 +29,9 @@ pub const SHARD_FORMAT: &str = "fedvla-shard/1";
 const MANIFEST_KEY: &str = "fedvla.manifest";
 const VECTOR_FEATURES: [&str; 2] = ["observation.state", "action"];
 
+/// Turns a task string into token ids (the policy's tokenizer lives outside this crate).
+pub type Tokenizer<'a> = &'a dyn Fn(&str) -> Vec<u32>;
+
 /// How a shard is built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ShardSpec {
@@ -159,7 +162,7 @@ pub fn build_shard(
     partition: &Partition,
     client: usize,
     spec: &ShardSpec,
-    tokenize: Option<&dyn Fn(&str) -> Vec<u32>>,
+    tokenize: Option<Tokenizer>,
     out: &Path,
 ) -> Result<ShardFileManifest> {
     let split = partition

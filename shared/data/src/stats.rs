@@ -149,7 +149,7 @@ impl FeatureStats {
     pub fn from_json(value: &Value) -> Option<FeatureStats> {
         let (mean, shape) = flatten(value.get("mean")?)?;
         let get = |k: &str| value.get(k).and_then(flatten).map(|(v, _)| v);
-        let count = value.get("count").and_then(|c| flatten(c)).and_then(|(v, _)| v.first().copied()).unwrap_or(0.0) as u64;
+        let count = value.get("count").and_then(flatten).and_then(|(v, _)| v.first().copied()).unwrap_or(0.0) as u64;
         Some(FeatureStats {
             shape,
             min: get("min")?,

@@ -185,7 +185,7 @@ impl DatasetWriter {
             return Err(DataError::InvalidInput("fps and joint_names must be non-zero/non-empty".into()));
         }
         for cam in &spec.cameras {
-            if cam.width % 2 != 0 || cam.height % 2 != 0 || cam.width == 0 || cam.height == 0 {
+            if !cam.width.is_multiple_of(2) || !cam.height.is_multiple_of(2) || cam.width == 0 || cam.height == 0 {
                 return Err(DataError::InvalidInput(format!("camera {} is {}x{}; yuv420p needs even sizes", cam.name, cam.width, cam.height)));
             }
         }

@@ -52,7 +52,7 @@ fn truncated_mp4_fails_when_decoding() {
     let bytes = std::fs::read(&path).expect("read");
     std::fs::write(&path, &bytes[..bytes.len() - 100]).expect("truncate");
     let ds = LeRobotDataset::open(&root).expect("metadata is intact");
-    let err = ds.get(0, &Default::default()).err().expect("must fail");
+    let err = ds.get(0, &Default::default()).expect_err("must fail");
     assert!(matches!(&err, DataError::BadMp4 { path: p, .. } if *p == path), "{err}");
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }

@@ -38,7 +38,7 @@ pub struct CameraVideoWriter {
 
 impl CameraVideoWriter {
     pub fn create(path: &Path, width: u32, height: u32, fps: u32, encoding: VideoEncoding) -> Result<Self> {
-        if width % 2 != 0 || height % 2 != 0 || width == 0 || height == 0 {
+        if !width.is_multiple_of(2) || !height.is_multiple_of(2) || width == 0 || height == 0 {
             return Err(DataError::InvalidInput(format!("yuv420p video needs even, non-zero sizes; got {width}x{height}")));
         }
         let (w16, h16) = (u16::try_from(width), u16::try_from(height));

@@ -1,4 +1,6 @@
 //! Shared fixtures: small synthetic datasets written into fresh temporary directories.
+// Each test binary compiles this module and uses only part of it.
+#![allow(dead_code)]
 
 use std::path::PathBuf;
 

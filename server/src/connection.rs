@@ -38,15 +38,17 @@ where
     };
     let client_id = conn.client_id.expect("joined");
     loop {
+        // Biased: messages the coordinator queued (e.g. `Finished`) go out before a shutdown closes the socket.
         let flow = tokio::select! {
-            () = conn.state.cancel.cancelled() => {
-                conn.send(&ServerMessage::Error { code: ErrorCode::ShuttingDown, message: "server shutting down".into() }).await;
-                Flow::Close
-            }
+            biased;
             msg = outbox.recv() => match msg {
                 Some(msg) => conn.send(&msg).await,
                 None => Flow::Close,
             },
+            () = conn.state.cancel.cancelled() => {
+                conn.send(&ServerMessage::Error { code: ErrorCode::ShuttingDown, message: "server shutting down".into() }).await;
+                Flow::Close
+            }
             frame = stream.next() => match frame {
                 Some(Ok(Message::Text(text))) => conn.on_text(text.as_str()).await,
                 Some(Ok(Message::Binary(data))) => conn.on_binary(&data).await,

@@ -10,3 +10,4 @@ pub mod linreg;
 pub mod native_client;
 pub mod run_dir;
 pub mod server;
+pub mod workload;

@@ -10,7 +10,9 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 
-use crate::config::Partitioning;
+use crate::config::{Partitioning, RunConfig};
+use crate::run_dir::ModelExporter;
+use crate::workload::Workload;
 
 /// Raw input size.
 pub const INPUTS: usize = 8;
@@ -229,6 +231,42 @@ impl Evaluator for LinRegEvaluator {
             ("heldout_loss".to_owned(), self.heldout.mse(&weight, bias)),
             ("heldout_examples".to_owned(), self.heldout.len() as f64),
         ]))
+    }
+}
+
+/// The linreg workload: initial head from the run's seed, clients partitioned as configured.
+#[derive(Debug, Clone, Copy)]
+pub struct LinRegWorkload {
+    pub seed: u64,
+    pub partitioning: Partitioning,
+}
+
+impl LinRegWorkload {
+    pub fn from_config(config: &RunConfig) -> Self {
+        Self {
+            seed: config.seed,
+            partitioning: config.partitioning,
+        }
+    }
+}
+
+impl Workload for LinRegWorkload {
+    type Trainer = LinRegTrainer;
+
+    fn initial_model(&self) -> Result<NamedTensors, BoxError> {
+        Ok(initial_model(self.seed))
+    }
+
+    fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError> {
+        Ok(Box::new(LinRegEvaluator::default()))
+    }
+
+    fn exporters(&self) -> Vec<Box<dyn ModelExporter>> {
+        Vec::new()
+    }
+
+    fn trainer(&self, shard: usize) -> Result<LinRegTrainer, BoxError> {
+        Ok(LinRegTrainer::new(shard, self.partitioning))
     }
 }
 

@@ -11,11 +11,12 @@ use std::sync::Mutex;
 
 use anyhow::Context;
 use clap::Subcommand;
-use fedvla_federation::FedAvg;
+use fedvla_federation::{BoxError, FedAvg, Strategy};
 use fedvla_server::config::{RunConfig, StrategyKind, WorkloadKind};
-use fedvla_server::linreg::{self, LinRegEvaluator};
+use fedvla_server::linreg::LinRegWorkload;
 use fedvla_server::run_dir::RunDir;
 use fedvla_server::server::ServerParts;
+use fedvla_server::workload::Workload;
 use tracing_subscriber::filter::{EnvFilter, LevelFilter};
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
@@ -60,25 +61,35 @@ impl ConfigArgs {
     }
 }
 
-/// The server side of the configured workload and strategy.
-fn server_parts(config: RunConfig, run_dir: RunDir) -> ServerParts {
-    let (initial, evaluator) = match config.workload {
-        WorkloadKind::Linreg => (
-            linreg::initial_model(config.seed),
-            Box::new(LinRegEvaluator::default()),
-        ),
-    };
-    let strategy = match config.strategy {
+/// The server side of the configured workload and strategy. A new workload gets an arm here and in the
+/// client subcommands (join, simulate).
+fn server_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerParts> {
+    match config.workload {
+        WorkloadKind::Linreg => parts_of(&LinRegWorkload::from_config(&config), config, run_dir),
+    }
+}
+
+fn parts_of<W: Workload>(
+    workload: &W,
+    config: RunConfig,
+    run_dir: RunDir,
+) -> anyhow::Result<ServerParts> {
+    let strategy: Box<dyn Strategy + Send> = match config.strategy {
         StrategyKind::Fedavg => Box::new(FedAvg),
     };
-    ServerParts {
+    Ok(ServerParts {
+        initial: workload.initial_model().map_err(boxed)?,
+        evaluator: workload.evaluator().map_err(boxed)?,
+        exporters: workload.exporters(),
+        strategy,
         config,
         run_dir,
-        initial,
-        strategy,
-        evaluator,
-        exporters: Vec::new(),
-    }
+    })
+}
+
+/// Library errors crossing trait objects, into anyhow.
+fn boxed(e: BoxError) -> anyhow::Error {
+    anyhow::anyhow!(e)
 }
 
 /// Logs to stderr at `stderr_level` (unless RUST_LOG says otherwise) and, at info, to `server.log`.

@@ -41,7 +41,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let dir = run_dir.path().to_owned();
     super::runtime()?.block_on(async move {
         let listener = TcpListener::bind(&listen).await.with_context(|| format!("binding {listen}"))?;
-        let handle = server::start(super::server_parts(config, run_dir), listener)?;
+        let handle = server::start(super::server_parts(config, run_dir)?, listener)?;
         let cancel = handle.cancel_token();
         tokio::spawn(async move {
             super::shutdown_signal().await;

@@ -4,13 +4,16 @@ use std::path::Path;
 use std::time::Duration;
 
 use anyhow::Context;
-use fedvla_federation::{ClientEvent, ClientOptions, run_client};
-use fedvla_server::linreg::LinRegTrainer;
+use fedvla_federation::{ClientEvent, ClientOptions, LocalTrainer, run_client};
+use fedvla_server::config::{RunConfig, WorkloadKind};
+use fedvla_server::linreg::LinRegWorkload;
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::server;
+use fedvla_server::workload::Workload;
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use tokio::net::TcpListener;
+use tokio::sync::oneshot;
 use tracing_subscriber::filter::LevelFilter;
 
 use super::ConfigArgs;
@@ -32,17 +35,29 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.clients,
         config.min_clients
     );
+    match config.workload {
+        WorkloadKind::Linreg => {
+            simulate(&LinRegWorkload::from_config(&config), config, args.clients)
+        }
+    }
+}
+
+fn simulate<W: Workload>(workload: &W, config: RunConfig, clients: usize) -> anyhow::Result<()> {
+    let trainers = (0..clients)
+        .map(|shard| workload.trainer(shard))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(super::boxed)?;
     let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
     // Progress bars own the terminal: only warnings go to stderr, the full log to server.log.
     super::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
-    let dir = run_dir.path().to_owned();
+    let metrics_path = run_dir.path().join(METRICS_FILE);
     let rounds = config.num_server_rounds;
-    let partitioning = config.partitioning;
+    let parts = super::server_parts(config, run_dir)?;
     super::runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0")
             .await
             .context("binding 127.0.0.1:0")?;
-        let handle = server::start(super::server_parts(config, run_dir), listener)?;
+        let handle = server::start(parts, listener)?;
         let url = format!("ws://{}", handle.addr());
         let bars = MultiProgress::new();
         let round_bar = bars.add(ProgressBar::new(rounds));
@@ -57,11 +72,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 loop {
                     let s = status.borrow_and_update().clone();
                     round_bar.set_position(s.completed_rounds);
-                    round_bar.set_message(format!(
-                        "{} connected, {} refusals",
-                        s.connected,
-                        s.rejections.values().sum::<u64>()
-                    ));
+                    let refusals = s.rejections.values().sum::<u64>();
+                    round_bar
+                        .set_message(format!("{} connected, {refusals} refusals", s.connected));
                     if s.finished || status.changed().await.is_err() {
                         break;
                     }
@@ -69,76 +82,94 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
         });
         let style = ProgressStyle::with_template("{prefix:>10} [{bar:30}] {pos}/{len} {msg}")?;
-        let mut clients = Vec::new();
-        for shard in 0..args.clients {
-            let bar = bars.add(ProgressBar::new(rounds));
-            bar.set_style(style.clone());
-            bar.set_prefix(format!("client {shard}"));
-            let url = url.clone();
-            clients.push(tokio::spawn(async move {
-                let mut transport = NativeTransport::connect(&url)
-                    .await
-                    .map_err(|e| anyhow::anyhow!(e))?;
-                let mut trainer = LinRegTrainer::new(shard, partitioning);
-                let options = ClientOptions {
-                    name: format!("client-{shard}"),
-                    auth_token: None,
-                };
-                let summary = run_client(
-                    &mut transport,
-                    &mut trainer,
-                    &options,
-                    |event| match event {
-                        ClientEvent::Joined { client_id } => {
-                            bar.set_message(format!("joined as {client_id}"))
-                        }
-                        ClientEvent::Task { round, local_steps } => {
-                            bar.set_message(format!("round {round}: training {local_steps} steps"));
-                        }
-                        ClientEvent::Trained {
-                            round, train_loss, ..
-                        } => {
-                            bar.set_message(format!(
-                                "round {round}: loss {train_loss:.4}, uploading"
-                            ));
-                        }
-                        ClientEvent::Uploaded { round, bytes } => {
-                            bar.set_message(format!("round {round}: sent {bytes} B"))
-                        }
-                        ClientEvent::RoundClosed { round, accepted } => {
-                            if accepted {
-                                bar.set_position(round);
-                            }
-                        }
-                        ClientEvent::Refused { code, .. } => {
-                            bar.set_message(format!("refused: {}", code.as_str()))
-                        }
-                    },
-                )
-                .await?;
-                bar.finish_with_message(format!(
-                    "{} rounds, {} B up, {} B down",
-                    summary.rounds_trained, summary.bytes_up, summary.bytes_down
-                ));
-                anyhow::Ok(())
-            }));
-        }
+        let tasks: Vec<_> = trainers
+            .into_iter()
+            .enumerate()
+            .map(|(shard, trainer)| {
+                let bar = bars.add(ProgressBar::new(rounds));
+                bar.set_style(style.clone());
+                bar.set_prefix(format!("client {shard}"));
+                spawn_client(url.clone(), shard, trainer, bar)
+            })
+            .collect();
         let status = handle.finish().await?;
         watcher.await.ok();
         round_bar.finish();
-        for (shard, client) in clients.into_iter().enumerate() {
-            match tokio::time::timeout(Duration::from_secs(5), client).await {
+        for (shard, task) in tasks.into_iter().enumerate() {
+            match tokio::time::timeout(Duration::from_secs(5), task).await {
                 Ok(Ok(Ok(()))) => {}
                 Ok(Ok(Err(e))) => eprintln!("client {shard}: {e:#}"),
-                Ok(Err(e)) => eprintln!("client {shard} panicked: {e}"),
+                Ok(Err(_)) => eprintln!("client {shard} panicked"),
                 Err(_) => eprintln!("client {shard} did not finish"),
             }
         }
         println!(
             "{} rounds done; metrics in {}",
             status.completed_rounds,
-            dir.join(METRICS_FILE).display()
+            metrics_path.display()
         );
         anyhow::Ok(())
     })
+}
+
+/// One client with its own progress bar, on its own thread: trainers' futures need not be `Send` (the
+/// browser's are not), and CPU-bound trainers then train in parallel.
+fn spawn_client<L: LocalTrainer + Send + 'static>(
+    url: String,
+    shard: usize,
+    mut trainer: L,
+    bar: ProgressBar,
+) -> oneshot::Receiver<anyhow::Result<()>> {
+    let (done_tx, done) = oneshot::channel();
+    std::thread::spawn(move || {
+        let client = async move {
+            let mut transport = NativeTransport::connect(&url).await.map_err(super::boxed)?;
+            let options = ClientOptions {
+                name: format!("client-{shard}"),
+                auth_token: None,
+            };
+            let summary = run_client(
+                &mut transport,
+                &mut trainer,
+                &options,
+                |event| match event {
+                    ClientEvent::Joined { client_id } => {
+                        bar.set_message(format!("joined as {client_id}"))
+                    }
+                    ClientEvent::Task { round, local_steps } => {
+                        bar.set_message(format!("round {round}: training {local_steps} steps"));
+                    }
+                    ClientEvent::Trained {
+                        round, train_loss, ..
+                    } => {
+                        bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
+                    }
+                    ClientEvent::Uploaded { round, bytes } => {
+                        bar.set_message(format!("round {round}: sent {bytes} B"));
+                    }
+                    ClientEvent::RoundClosed { round, accepted } => {
+                        if accepted {
+                            bar.set_position(round);
+                        }
+                    }
+                    ClientEvent::Refused { code, .. } => {
+                        bar.set_message(format!("refused: {}", code.as_str()));
+                    }
+                },
+            )
+            .await?;
+            bar.finish_with_message(format!(
+                "{} rounds, {} B up, {} B down",
+                summary.rounds_trained, summary.bytes_up, summary.bytes_down
+            ));
+            anyhow::Ok(())
+        };
+        let result = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .context("client runtime")
+            .and_then(|rt| rt.block_on(client));
+        done_tx.send(result).ok();
+    });
+    done
 }

@@ -5,6 +5,7 @@
 use std::fmt::Display;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
+use std::time::Duration;
 
 use axum::extract::ws::Message;
 use fedvla_federation::codec::decode_payload;
@@ -17,6 +18,9 @@ use tokio::sync::mpsc;
 
 use crate::app::AppState;
 use crate::coordinator::{Event, UpdateReceived};
+
+/// A connection that has not joined by then is closed.
+const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// Serves one connection until the client leaves, a fatal error, or shutdown.
 pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: AppState)
@@ -120,6 +124,10 @@ where
     {
         let text = tokio::select! {
             () = self.state.cancel.cancelled() => return None,
+            () = tokio::time::sleep(JOIN_TIMEOUT) => {
+                self.refuse(ErrorCode::UnexpectedMessage, format!("no join within {JOIN_TIMEOUT:?}")).await;
+                return None;
+            }
             frame = stream.next() => match frame {
                 Some(Ok(Message::Text(text))) => text,
                 Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return None,

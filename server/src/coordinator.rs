@@ -116,6 +116,7 @@ struct ClientEntry {
 
 #[derive(Default)]
 struct Participant {
+    name: String,
     update: Option<UpdateReceived>,
     metrics: Option<RoundMetrics>,
     eval: Option<(u64, f64)>,
@@ -179,42 +180,46 @@ impl Running {
     }
 
     async fn run_round(&mut self, round: u64) -> Result<(), CoordinatorError> {
-        for attempt in 0.. {
+        let mut attempt = 0;
+        loop {
             self.wait_for_clients().await?;
             let started = Instant::now();
             let state = self.start_round(round, attempt);
-            let state = self.collect(state).await?;
-            let mut updates: Vec<(&str, u64, &UpdateReceived)> = state
+            let mut state = self.collect(state).await?;
+            let clients = client_records(&state);
+            let mut updates: Vec<(String, u64, UpdateReceived)> = state
                 .participants
-                .iter()
-                .filter_map(|(id, p)| Some((self.name_of(*id)?, *id, p.update.as_ref()?)))
+                .iter_mut()
+                .filter_map(|(id, p)| Some((p.name.clone(), *id, p.update.take()?)))
                 .collect();
             // Aggregation order follows the clients' names, so the sum does not depend on arrival or id order.
-            updates.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
-            let version = self.c.global_version();
+            updates.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
+            let accepted = updates.len() as u32;
             if updates.len() < self.c.config.min_fit {
                 tracing::warn!(
                     round,
                     attempt,
-                    updates = updates.len(),
+                    updates = accepted,
                     min_fit = self.c.config.min_fit,
                     "round retried"
                 );
                 self.broadcast(ServerMessage::RoundClosed {
                     round,
                     accepted: false,
-                    model_version: version,
-                    updates: updates.len() as u32,
+                    model_version: self.c.global_version(),
+                    updates: accepted,
                 });
                 self.c.status_tx.send_modify(|s| s.retried_rounds += 1);
+                attempt += 1;
                 continue;
             }
-            let inputs: Vec<(NamedTensors, u64)> = updates
-                .iter()
-                .map(|(_, _, u)| (u.tensors.clone(), u.examples))
-                .collect();
-            let accepted = updates.len() as u32;
-            self.aggregate(inputs).await?;
+            self.aggregate(
+                updates
+                    .into_iter()
+                    .map(|(_, _, u)| (u.tensors, u.examples))
+                    .collect(),
+            )
+            .await?;
             let metrics = if round.is_multiple_of(self.c.config.eval_every)
                 || round == self.c.config.num_server_rounds
             {
@@ -222,7 +227,6 @@ impl Running {
             } else {
                 None
             };
-            let clients = self.client_records(&state);
             let seconds = started.elapsed().as_secs_f64();
             self.persist(round, json!({ "attempt": attempt, "seconds": seconds, "clients": clients, "global": metrics }))
                 .await?;
@@ -234,11 +238,6 @@ impl Running {
             });
             return Ok(());
         }
-        unreachable!("attempts are unbounded")
-    }
-
-    fn name_of(&self, client_id: u64) -> Option<&str> {
-        self.clients.get(&client_id).map(|c| c.name.as_str())
     }
 
     async fn wait_for_clients(&mut self) -> Result<(), CoordinatorError> {
@@ -296,7 +295,13 @@ impl Running {
                 .outbox
                 .send(ServerMessage::RoundTask(task))
                 .ok();
-            participants.insert(client_id, Participant::default());
+            participants.insert(
+                client_id,
+                Participant {
+                    name: name.to_owned(),
+                    ..Participant::default()
+                },
+            );
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
         RoundState {
@@ -410,29 +415,6 @@ impl Running {
         }
     }
 
-    fn client_records(&self, state: &RoundState) -> Vec<serde_json::Value> {
-        state
-            .participants
-            .iter()
-            .map(|(id, p)| {
-                json!({
-                    "client_id": id,
-                    "name": self.name_of(*id),
-                    "accepted": p.update.is_some(),
-                    "examples": p.update.as_ref().map(|u| u.examples),
-                    "train_loss": p.update.as_ref().map(|u| u.train_loss),
-                    "update_bytes": p.update.as_ref().map(|u| u.bytes),
-                    "seconds": p.metrics.as_ref().map(|m| m.seconds),
-                    "bytes_up": p.metrics.as_ref().map(|m| m.bytes_up),
-                    "bytes_down": p.metrics.as_ref().map(|m| m.bytes_down),
-                    "eval_examples": p.eval.map(|e| e.0),
-                    "eval_loss": p.eval.map(|e| e.1),
-                    "refused": p.refused.iter().map(|c| c.as_str()).collect::<Vec<_>>(),
-                })
-            })
-            .collect()
-    }
-
     async fn aggregate(
         &mut self,
         updates: Vec<(NamedTensors, u64)>,
@@ -510,6 +492,30 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
         Ok(out) => out,
         Err(e) => std::panic::resume_unwind(e.into_panic()),
     }
+}
+
+/// One metrics record per sampled client.
+fn client_records(state: &RoundState) -> Vec<serde_json::Value> {
+    state
+        .participants
+        .iter()
+        .map(|(id, p)| {
+            json!({
+                "client_id": id,
+                "name": p.name,
+                "accepted": p.update.is_some(),
+                "examples": p.update.as_ref().map(|u| u.examples),
+                "train_loss": p.update.as_ref().map(|u| u.train_loss),
+                "update_bytes": p.update.as_ref().map(|u| u.bytes),
+                "seconds": p.metrics.as_ref().map(|m| m.seconds),
+                "bytes_up": p.metrics.as_ref().map(|m| m.bytes_up),
+                "bytes_down": p.metrics.as_ref().map(|m| m.bytes_down),
+                "eval_examples": p.eval.map(|e| e.0),
+                "eval_loss": p.eval.map(|e| e.1),
+                "refused": p.refused.iter().map(|c| c.as_str()).collect::<Vec<_>>(),
+            })
+        })
+        .collect()
 }
 
 /// splitmix64 of `a` combined with `b`: seeds derived per round, attempt and client.

@@ -7,15 +7,16 @@ use std::time::{Duration, Instant};
 use common::*;
 use fedvla_federation::codec::{encode_payload, encode_update};
 use fedvla_federation::{
-    ClientMessage, ErrorCode, NamedTensors, PROTOCOL_VERSION, ServerMessage, TrainOutput,
+    ClientMessage, ErrorCode, NamedTensors, PROTOCOL_VERSION, RoundMetrics, ServerMessage,
+    TrainOutput,
 };
 use fedvla_server::linreg::{self, BIAS, FEATURES, WEIGHT};
 use fedvla_server::run_dir::RunDir;
 
 #[tokio::test]
-async fn straggler_and_dropped_client_do_not_stall_the_round() {
+async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     let base = tempfile::tempdir().unwrap();
-    let cfg = config("num-server-rounds=1 min-clients=4 min-fit=2 round-deadline-ms=1500");
+    let cfg = config("num-server-rounds=1 min-clients=5 min-fit=2 round-deadline-ms=1500");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     let good: Vec<_> = (0..2)
@@ -24,12 +25,45 @@ async fn straggler_and_dropped_client_do_not_stall_the_round() {
     let (straggler, _) = spawn_client(&handle, 2, Some(1));
     // A client that takes its task and disconnects without answering.
     let (mut dropper, _) = RawClient::join(&handle, "client-3").await;
+    // A client that uploads its update, then disconnects before the round closes: its update still counts.
+    let (mut leaver, _) = RawClient::join(&handle, "client-4").await;
     let started = Instant::now();
     assert!(matches!(
         dropper.recv().await,
         Some(ServerMessage::RoundTask(_))
     ));
     drop(dropper);
+    let Some(ServerMessage::RoundTask(task)) = leaver.recv().await else {
+        panic!("task")
+    };
+    let leaver_update = TrainOutput {
+        update: head(vec![0.25; FEATURES], vec![-0.5]),
+        examples: 10,
+        train_loss: 1.0,
+    };
+    let payload = encode_payload(&leaver_update.update);
+    leaver
+        .send(&ClientMessage::UpdateHeader {
+            round: task.round,
+            examples: 10,
+            train_loss: 1.0,
+            payload_bytes: payload.len() as u64,
+        })
+        .await;
+    for frame in encode_update(&leaver_update.update, task.round, 64) {
+        leaver.send_binary(frame).await;
+    }
+    leaver
+        .send(&ClientMessage::Metrics(RoundMetrics {
+            round: task.round,
+            examples: 10,
+            train_loss: 1.0,
+            seconds: 0.0,
+            bytes_up: 0,
+            bytes_down: 0,
+        }))
+        .await;
+    drop(leaver);
 
     let status = handle.finish().await.unwrap();
     let elapsed = started.elapsed();
@@ -50,6 +84,7 @@ async fn straggler_and_dropped_client_do_not_stall_the_round() {
         updates.extend(rec.lock().unwrap().iter().map(|(_, u)| u.clone()));
     }
     assert_eq!(updates.len(), 2);
+    updates.push(leaver_update);
     assert_close(
         &run_dir.load_model(1).unwrap(),
         &weighted_mean(&updates),
@@ -63,7 +98,7 @@ async fn straggler_and_dropped_client_do_not_stall_the_round() {
         .filter(|c| c["accepted"] == true)
         .map(|c| c["name"].as_str().unwrap())
         .collect();
-    assert_eq!(accepted, ["client-0", "client-1"]);
+    assert_eq!(accepted, ["client-0", "client-1", "client-4"]);
 }
 
 #[tokio::test]

@@ -454,6 +454,7 @@ impl Running {
             .collect();
         line["round"] = json!(round);
         line["model_version"] = json!(round);
+        line["model_crc32"] = json!(self.c.global.checksum());
         line["rejections"] = json!(rejections);
         line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
         let (run_dir, exporters, global) = (

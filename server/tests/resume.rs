@@ -58,6 +58,9 @@ async fn killed_after_round_one_then_resumed() {
         std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap(),
         round_one
     );
+    let crc = |round: usize| metrics(&dir)[round]["model_crc32"].as_u64().unwrap() as u32;
+    assert_eq!(crc(1), run_dir.load_model(1).unwrap().checksum());
+    assert_eq!(crc(2), run_dir.load_model(2).unwrap().checksum());
     assert_close(
         &run_dir.load_model(2).unwrap(),
         &weighted_mean(&updates),

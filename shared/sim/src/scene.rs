@@ -174,11 +174,14 @@ impl Scene {
 
     /// Advances one control step (1/30 s) towards the goal positions `action`, in robot units
     /// (degrees for the five arm joints, 0..100 for the gripper). Goals outside the joint
-    /// limits are clamped to them, as the servo firmware does.
+    /// limits are clamped to them, as the servo firmware does; a non-finite goal (a policy
+    /// gone wrong) leaves that servo's previous goal in place.
     pub fn step(&mut self, action: [f32; JOINT_COUNT]) {
         let goal = arm::clamp_to_limits(&arm::from_robot_units(&action));
         for (servo, goal) in self.servos.iter_mut().zip(goal) {
-            servo.goal = goal;
+            if goal.is_finite() {
+                servo.goal = goal;
+            }
         }
         let dt = self.world.integration_parameters.dt;
         for _ in 0..SUBSTEPS {
@@ -268,8 +271,11 @@ impl Scene {
     /// Starts holding the cube when the jaw presses it onto the fixed finger, and lets go
     /// as soon as the gripper is told to open.
     fn update_grip(&mut self, jaw_penetration: f32) {
+        let jaw = self.servos[GRIPPER];
+        let opening = jaw.goal > jaw.position;
         match self.grip {
-            None if jaw_penetration > GRIP_SQUEEZE
+            None if !opening
+                && jaw_penetration > GRIP_SQUEEZE
                 && self.deepest_contact(&self.finger_colliders) > -TOUCHING =>
             {
                 let gripper = self.links[GRIPPER_LINK];
@@ -285,7 +291,7 @@ impl Scene {
                         .insert(gripper, self.cube, hold, true),
                 );
             }
-            Some(hold) if self.servos[GRIPPER].goal > self.servos[GRIPPER].position => {
+            Some(hold) if opening => {
                 self.world.impulse_joints.remove(hold, true);
                 self.grip = None;
             }
@@ -382,4 +388,26 @@ fn bowl_parts() -> Vec<Part> {
         parts.push(wall);
     }
     parts
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn out_of_range_and_non_finite_actions_keep_the_arm_in_its_limits() {
+        let mut scene = Scene::new(0);
+        for action in [
+            [1e6; JOINT_COUNT],
+            [f32::NAN; JOINT_COUNT],
+            [-1e6; JOINT_COUNT],
+        ] {
+            for _ in 0..30 {
+                scene.step(action);
+            }
+            let q = scene.joint_positions();
+            assert!(q.iter().all(|v| v.is_finite()), "{q:?}");
+            assert_eq!(arm::clamp_to_limits(&q), q);
+        }
+    }
 }

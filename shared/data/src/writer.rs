@@ -184,6 +184,10 @@ impl DatasetWriter {
         if spec.fps == 0 || spec.joint_names.is_empty() {
             return Err(DataError::InvalidInput("fps and joint_names must be non-zero/non-empty".into()));
         }
+        // LeRobot refuses datasets whose rollover sizes are not positive.
+        if spec.data_files_size_in_mb == 0 || spec.video_files_size_in_mb == 0 {
+            return Err(DataError::InvalidInput("data_files_size_in_mb and video_files_size_in_mb must be positive".into()));
+        }
         for cam in &spec.cameras {
             if !cam.width.is_multiple_of(2) || !cam.height.is_multiple_of(2) || cam.width == 0 || cam.height == 0 {
                 return Err(DataError::InvalidInput(format!("camera {} is {}x{}; yuv420p needs even sizes", cam.name, cam.width, cam.height)));
@@ -248,16 +252,33 @@ impl DatasetWriter {
             self.rows.episode_index.push(episode_index as i64);
             self.rows.index.push(global_index);
             self.rows.task_index.push(task_index as i64);
-            for ((cam, image), hist) in self.cameras.iter_mut().zip(&frame.images).zip(histograms.iter_mut()) {
-                if let Some(writer) = cam.writer.as_mut() {
-                    writer.push_frame(image)?;
-                }
-                for px in image.data.chunks_exact(3) {
-                    for c in 0..3 {
-                        hist[c][px[c] as usize] += 1;
-                    }
-                }
-            }
+            // Cameras encode in parallel: H.264 encoding is most of the writer's time.
+            let camera_results: Vec<Result<()>> = std::thread::scope(|scope| {
+                let handles: Vec<_> = self
+                    .cameras
+                    .iter_mut()
+                    .zip(&frame.images)
+                    .zip(histograms.iter_mut())
+                    .map(|((cam, image), hist)| {
+                        scope.spawn(move || -> Result<()> {
+                            if let Some(writer) = cam.writer.as_mut() {
+                                writer.push_frame(image)?;
+                            }
+                            for px in image.data.chunks_exact(3) {
+                                for c in 0..3 {
+                                    hist[c][px[c] as usize] += 1;
+                                }
+                            }
+                            Ok(())
+                        })
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().unwrap_or_else(|_| Err(DataError::Encode("a camera encoder thread panicked".into()))))
+                    .collect()
+            });
+            camera_results.into_iter().collect::<Result<Vec<()>>>()?;
             self.total_frames += 1;
             if let Some(progress) = self.progress.as_mut() {
                 progress(&WriteProgress {

@@ -44,7 +44,8 @@ impl H264Encoder {
             // A skipped frame would shift every later frame's timestamp in the file.
             .skip_frames(false)
             .qp(QpRange::new(0, qp_max.min(51)))
-            .complexity(Complexity::High)
+            // Low complexity encodes twice as fast as High at about the same size and fidelity here.
+            .complexity(Complexity::Low)
             .intra_frame_period(IntraFramePeriod::from_num_frames(gop))
             .scene_change_detect(false)
             .vui(VuiConfig::bt601());

@@ -148,37 +148,41 @@ impl VideoFile {
     }
 
     /// Decodes the frames presented at `timestamps_s` (seconds from the file start), in the given order.
-    /// Decoding starts at the last key frame before the earliest requested frame and runs forward.
+    /// Each run of requested frames is decoded forward from the last key frame before it; a decoder
+    /// already positioned before a requested frame (and past its key frame) just keeps going.
     pub fn frames_at(&self, timestamps_s: &[f64], tolerance_s: f64) -> Result<Vec<RgbImage>> {
         let wanted: Vec<usize> = timestamps_s.iter().map(|&t| self.sample_at(t, tolerance_s)).collect::<Result<_>>()?;
-        let (Some(&first), Some(&last)) = (wanted.iter().min(), wanted.iter().max()) else {
-            return Ok(Vec::new());
-        };
-        let start = (0..=first).rev().find(|&i| self.track.is_sync[i]).unwrap_or(0);
+        let mut targets = wanted.clone();
+        targets.sort_unstable();
+        targets.dedup();
         let path = self.track.path.clone();
         let mut file = File::open(&path).map_err(|e| DataError::io(&path, e))?;
-        let mut decoder = FrameDecoder::new(&self.track)?;
         let mut decoded: BTreeMap<usize, RgbImage> = BTreeMap::new();
-        // Pictures come out in decode order, one per sample; the decoder may hold some back.
-        let mut pending_outputs = std::collections::VecDeque::new();
-        for sample in start..=last {
-            let bytes = self.track.read_sample(&mut file, sample)?;
-            pending_outputs.push_back(sample);
-            if let Some(image) = decoder.decode(&path, &bytes)? {
-                let Some(s) = pending_outputs.pop_front() else { break };
-                if wanted.contains(&s) {
-                    decoded.insert(s, image);
+        // The decoder, the next sample it would take, and the samples whose pictures it still owes.
+        let mut state: Option<(FrameDecoder, usize, std::collections::VecDeque<usize>)> = None;
+        for &target in &targets {
+            let key = (0..=target).rev().find(|&i| self.track.is_sync[i]).unwrap_or(0);
+            let keep = matches!(&state, Some((_, next, _)) if *next <= target && *next > key);
+            if !keep {
+                state = Some((FrameDecoder::new(&self.track)?, key, std::collections::VecDeque::new()));
+            }
+            let Some((decoder, next, owed)) = state.as_mut() else { break };
+            while *next <= target {
+                let bytes = self.track.read_sample(&mut file, *next)?;
+                owed.push_back(*next);
+                *next += 1;
+                // Pictures come out in decode order, one per sample; the decoder may hold some back.
+                if let Some(image) = decoder.decode(&path, &bytes)?
+                    && let Some(sample) = owed.pop_front()
+                    && targets.binary_search(&sample).is_ok()
+                {
+                    decoded.insert(sample, image);
                 }
             }
         }
         wanted
             .iter()
-            .map(|s| {
-                decoded.get(s).cloned().ok_or_else(|| DataError::Decode {
-                    path: path.clone(),
-                    reason: format!("sample {s} produced no picture"),
-                })
-            })
+            .map(|s| decoded.get(s).cloned().ok_or_else(|| DataError::Decode { path: path.clone(), reason: format!("sample {s} produced no picture") }))
             .collect()
     }
 }

@@ -203,6 +203,10 @@ impl LeRobotDataset {
 
     /// Frame `index` with the features in `delta` loaded at those offsets (LeRobot's `__getitem__`).
     pub fn get(&self, index: usize, delta: &DeltaTimestamps) -> Result<Sample> {
+        let cameras = self.camera_keys();
+        if let Some(unknown) = delta.keys().find(|k| !self.vectors.contains_key(*k) && !cameras.contains(k)) {
+            return Err(DataError::InvalidInput(format!("delta_timestamps names {unknown:?}, which is not a vector or camera feature")));
+        }
         let episode = self.episode_of(index)?;
         let fps = f64::from(self.info.fps);
         let (from, to) = (episode.dataset_from_index, episode.dataset_to_index);
@@ -240,7 +244,7 @@ impl LeRobotDataset {
                 sample.is_pad.insert(format!("{key}_is_pad"), pad);
             }
         }
-        for camera in self.camera_keys() {
+        for camera in cameras {
             let (rows, pad) = resolve(&camera);
             sample.images.insert(camera.clone(), self.camera_frames(&camera, episode, &rows)?);
             if let Some(pad) = pad {

@@ -87,6 +87,8 @@ fn delta_timestamps_pad_past_episode_bounds() {
     let previous = ds.get(20 + 14, &BTreeMap::new()).expect("get");
     assert_eq!(sample.images["observation.images.top"][0], previous.images["observation.images.top"][0]);
     assert!(!sample.is_pad.contains_key("observation.state_is_pad"));
+    let typo = BTreeMap::from([("actions".to_string(), vec![0.0])]);
+    assert!(ds.get(0, &typo).is_err(), "an unknown delta_timestamps key is an error, not ignored");
 
     // First frame of episode 1: the -1 camera frame is padded with the episode's own first frame.
     let first = ds.get(20, &deltas).expect("get");

@@ -9,7 +9,7 @@ use serde_json::{Value, json};
 use crate::config::{SmolVlaConfig, VlmConfig};
 use crate::error::PolicyError;
 use crate::normalize::NormStats;
-use crate::tokenizer::WordTokenizer;
+use crate::tokenizer::{Tokenizer, WordTokenizer};
 use crate::weights::{WeightMap, check_keys, read_safetensors, write_safetensors};
 
 /// A policy read from disk.
@@ -67,10 +67,10 @@ impl PolicyDir {
         Ok(Self { cfg, weights, stats, vlm_dir })
     }
 
-    /// The tokenizer of this policy's backbone folder, when it is one this crate reads natively.
-    pub fn tokenizer(&self) -> Result<Option<WordTokenizer>, PolicyError> {
+    /// The tokenizer of this policy's backbone folder, when one is available locally.
+    pub fn tokenizer(&self) -> Result<Option<Tokenizer>, PolicyError> {
         match &self.vlm_dir {
-            Some(d) if d.join("tokenizer.json").exists() => WordTokenizer::read(&d.join("tokenizer.json")).map(Some),
+            Some(d) if d.join("tokenizer.json").exists() => Tokenizer::read(&d.join("tokenizer.json")).map(Some),
             _ => Ok(None),
         }
     }
@@ -180,7 +180,8 @@ mod tests {
         }
         assert_eq!(loaded.stats, Some(stats()));
         assert_eq!(loaded.cfg.param_specs(), cfg.param_specs());
-        assert_eq!(loaded.tokenizer().unwrap().unwrap(), tok);
+        let Some(Tokenizer::Word(read_back)) = loaded.tokenizer().unwrap() else { panic!("word tokenizer expected") };
+        assert_eq!(read_back, tok);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

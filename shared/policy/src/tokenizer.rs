@@ -1,7 +1,9 @@
-//! Language tokens for the embedded default: a word-level tokenizer built from the task strings,
-//! written as a Hugging Face `tokenizer.json` (WordLevel model, Whitespace pre-tokenizer) so that
-//! LeRobot's tokenizer step loads the very same vocabulary from an exported policy's `vlm/` folder.
-//! Special tokens sit at SmolVLM2's ids; padding is on the right with `<|im_end|>`, as LeRobot pads.
+//! Language tokens as LeRobot's tokenizer step makes them ("\n" appended, truncated, right-padded
+//! with `<|im_end|>`). Two vocabularies: a checkpoint's own `tokenizer.json` (SmolVLM2's BPE)
+//! through the `tokenizers` crate, natively; and, for the embedded default, a word-level
+//! tokenizer built from the task strings and written as a Hugging Face `tokenizer.json` (WordLevel
+//! model, Whitespace pre-tokenizer) so LeRobot loads the very same vocabulary from an exported
+//! policy's `vlm/` folder. Special tokens sit at SmolVLM2's ids.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -72,22 +74,8 @@ impl WordTokenizer {
     /// them: "\n" appended, truncated to `max_length`, right-padded to the longest row
     /// (`pad_to_max = false`) or to `max_length`.
     pub fn encode_batch(&self, tasks: &[&str], max_length: usize, pad_to_max: bool) -> (Vec<i64>, Vec<bool>, usize) {
-        let rows: Vec<Vec<i64>> = tasks
-            .iter()
-            .map(|t| {
-                let mut ids: Vec<i64> = words(&format!("{t}\n")).iter().map(|w| *self.vocab.get(w).unwrap_or(&UNK_ID)).collect();
-                ids.truncate(max_length);
-                ids
-            })
-            .collect();
-        let len = if pad_to_max { max_length } else { rows.iter().map(Vec::len).max().unwrap_or(0).max(1) };
-        let mut ids = Vec::with_capacity(rows.len() * len);
-        let mut mask = Vec::with_capacity(rows.len() * len);
-        for row in rows {
-            mask.extend((0..len).map(|i| i < row.len()));
-            ids.extend(row.iter().copied().chain(std::iter::repeat(PAD_ID)).take(len));
-        }
-        (ids, mask, len)
+        let rows = tasks.iter().map(|t| words(t).iter().map(|w| *self.vocab.get(w).unwrap_or(&UNK_ID)).collect()).collect();
+        pad_rows(rows, max_length, pad_to_max)
     }
 
     /// The Hugging Face `tokenizer.json` of this vocabulary.
@@ -139,6 +127,62 @@ impl WordTokenizer {
             .map(|(k, v)| (k.clone(), v.as_i64().unwrap_or(UNK_ID)))
             .collect();
         Ok(Self { vocab })
+    }
+}
+
+/// Right-pads token rows into the `[B, L]` ids and mask LeRobot feeds the model.
+fn pad_rows(rows: Vec<Vec<i64>>, max_length: usize, pad_to_max: bool) -> (Vec<i64>, Vec<bool>, usize) {
+    let len = if pad_to_max { max_length } else { rows.iter().map(Vec::len).max().unwrap_or(0).max(1) };
+    let mut ids = Vec::with_capacity(rows.len() * len);
+    let mut mask = Vec::with_capacity(rows.len() * len);
+    for mut row in rows {
+        row.truncate(max_length);
+        mask.extend((0..len).map(|i| i < row.len()));
+        ids.extend(row.iter().copied().chain(std::iter::repeat(PAD_ID)).take(len));
+    }
+    (ids, mask, len)
+}
+
+/// The tokenizer of a policy: its checkpoint's own, or the embedded word-level one.
+#[derive(Debug, Clone)]
+pub enum Tokenizer {
+    Word(WordTokenizer),
+    #[cfg(not(target_arch = "wasm32"))]
+    HuggingFace(Box<tokenizers::Tokenizer>),
+}
+
+impl Tokenizer {
+    /// Reads a `tokenizer.json`: WordLevel ones natively in this crate, anything else (SmolVLM2's
+    /// BPE) through the `tokenizers` crate.
+    pub fn read(path: &Path) -> Result<Self, PolicyError> {
+        match WordTokenizer::read(path) {
+            Ok(word) => Ok(Self::Word(word)),
+            #[cfg(not(target_arch = "wasm32"))]
+            Err(PolicyError::Tokenizer(_)) => tokenizers::Tokenizer::from_file(path)
+                .map(|t| Self::HuggingFace(Box::new(t)))
+                .map_err(|e| PolicyError::Tokenizer(format!("{}: {e}", path.display()))),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// `[B, L]` token ids, attention mask and L for a batch of task strings.
+    pub fn encode_batch(&self, tasks: &[&str], max_length: usize, pad_to_max: bool) -> Result<(Vec<i64>, Vec<bool>, usize), PolicyError> {
+        match self {
+            Self::Word(w) => Ok(w.encode_batch(tasks, max_length, pad_to_max)),
+            #[cfg(not(target_arch = "wasm32"))]
+            Self::HuggingFace(t) => {
+                let rows = tasks
+                    .iter()
+                    .map(|task| {
+                        let text = if task.ends_with('\n') { task.to_string() } else { format!("{task}\n") };
+                        t.encode(text, true)
+                            .map(|e| e.get_ids().iter().map(|&i| i as i64).collect())
+                            .map_err(|e| PolicyError::Tokenizer(e.to_string()))
+                    })
+                    .collect::<Result<Vec<Vec<i64>>, _>>()?;
+                Ok(pad_rows(rows, max_length, pad_to_max))
+            }
+        }
     }
 }
 

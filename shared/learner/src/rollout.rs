@@ -1,0 +1,1 @@
+//! Closed-loop rollouts of a SmolVLA policy in the SO-100 simulation (being written).

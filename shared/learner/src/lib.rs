@@ -1,4 +1,14 @@
-//! SmolVLA as the federated workload, shared by the native and the wasm client: local training
-//! on a client's shard, held-out evaluation, and closed-loop rollouts of a policy in the SO-100 sim.
+//! SmolVLA as the federated workload, shared by the native and the wasm client: policy batches
+//! from a client shard, local training (`LocalTrainer`), held-out evaluation (client side and the
+//! server's `Evaluator`), and closed-loop rollouts of a policy in the SO-100 sim.
 
+pub mod evaluator;
+pub mod examples;
+pub mod heldout;
 pub mod rollout;
+pub mod tensors;
+pub mod trainer;
+
+pub use evaluator::HeldOutEvaluator;
+pub use examples::ShardExamples;
+pub use trainer::SmolVlaTrainer;

@@ -76,6 +76,10 @@ impl SmolVla {
         Self { cfg: cfg.clone(), vlm: Vlm::load(frozen, cfg), expert: ActionExpert::load(trainable, cfg) }
     }
 
+    pub fn device(&self) -> Device {
+        self.vlm.device()
+    }
+
     /// Rebuilds only the trainable part (after an optimizer step or a new global model).
     pub fn with_trainable(&self, trainable: &ParamStore) -> Self {
         Self { cfg: self.cfg.clone(), vlm: self.vlm.clone(), expert: ActionExpert::load(trainable, &self.cfg) }

@@ -44,6 +44,11 @@ impl Vlm {
         }
     }
 
+    /// The device the backbone lives on.
+    pub fn device(&self) -> burn::tensor::Device {
+        self.embed_tokens.device()
+    }
+
     pub fn head_dim(&self) -> usize {
         self.layers[0].head_dim
     }

@@ -1,0 +1,112 @@
+//! Policy batches from a client shard: camera frames to [0, 1] CHW, state and action chunks
+//! normalised with the dataset statistics the shard carries, LeRobot's `action_is_pad`, and the
+//! task's token ids.
+
+use fedvla_data::ClientShard;
+use fedvla_policy::weights::HostTensor;
+use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig};
+
+/// A shard with the policy-side view of its rows.
+#[derive(Debug, Clone)]
+pub struct ShardExamples {
+    shard: ClientShard,
+    stats: NormStats,
+    cameras: Vec<String>,
+    /// Rows of training episodes and of held-out episodes.
+    pub train_rows: Vec<usize>,
+    pub held_out_rows: Vec<usize>,
+}
+
+/// MEAN_STD statistics of `observation.state` and `action` as the shard carries them.
+pub fn shard_stats(shard: &ClientShard) -> Result<NormStats, PolicyError> {
+    let mut stats = NormStats::default();
+    for feature in ["observation.state", "action"] {
+        let s = shard
+            .stats
+            .get(feature)
+            .ok_or_else(|| PolicyError::Input(format!("shard has no statistics for {feature}")))?;
+        let get = |k: &str| s.get(k).cloned().ok_or_else(|| PolicyError::Input(format!("shard statistics of {feature} lack {k}")));
+        stats.features.insert(feature.into(), FeatureStats { mean: get("mean")?, std: get("std")? });
+    }
+    Ok(stats)
+}
+
+impl ShardExamples {
+    pub fn new(shard: ClientShard, cfg: &SmolVlaConfig) -> Result<Self, PolicyError> {
+        let cameras = cfg.camera_keys();
+        for key in &cameras {
+            if !shard.manifest.cameras.contains(key) {
+                return Err(PolicyError::Input(format!(
+                    "shard has cameras {:?} but the policy reads {key}",
+                    shard.manifest.cameras
+                )));
+            }
+        }
+        if shard.task_tokens.is_none() {
+            return Err(PolicyError::Input("shard carries no task token ids".into()));
+        }
+        let stats = shard_stats(&shard)?;
+        let rows = |held_out: bool| -> Vec<usize> {
+            shard.episodes.iter().filter(|e| e.held_out == held_out).flat_map(|e| e.start..e.end).collect()
+        };
+        let (train_rows, held_out_rows) = (rows(false), rows(true));
+        Ok(Self { stats, cameras, train_rows, held_out_rows, shard })
+    }
+
+    pub fn stats(&self) -> &NormStats {
+        &self.stats
+    }
+
+    /// The batch of `rows` for a policy with chunk size `chunk`.
+    pub fn batch(&self, rows: &[usize], chunk: usize) -> Result<Batch, PolicyError> {
+        let m = &self.shard.manifest;
+        let (w, h) = (m.image_width as usize, m.image_height as usize);
+        let b = rows.len();
+        let images = self
+            .cameras
+            .iter()
+            .map(|cam| {
+                let mut chw = vec![0.0f32; b * 3 * h * w];
+                for (n, &row) in rows.iter().enumerate() {
+                    let hwc = self.shard.image(cam, row).ok_or_else(|| PolicyError::Input(format!("shard row {row} has no {cam} image")))?;
+                    let plane = &mut chw[n * 3 * h * w..(n + 1) * 3 * h * w];
+                    for (i, px) in hwc.chunks_exact(3).enumerate() {
+                        for c in 0..3 {
+                            plane[c * h * w + i] = px[c] as f32 / 255.0;
+                        }
+                    }
+                }
+                Ok(HostTensor::new(vec![b, 3, h, w], chw))
+            })
+            .collect::<Result<Vec<_>, PolicyError>>()?;
+        let (sd, ad) = (m.state_dim, m.action_dim);
+        let state_stats = self.stats.get("observation.state")?;
+        let action_stats = self.stats.get("action")?;
+        let mut state = Vec::with_capacity(b * sd);
+        let mut actions = Vec::with_capacity(b * chunk * ad);
+        let mut is_pad = Vec::with_capacity(b * chunk);
+        let (all_ids, all_mask) = self.shard.task_tokens.as_ref().expect("checked in new");
+        let len = m.tokenizer_max_length;
+        let mut lang_tokens = Vec::with_capacity(b * len);
+        let mut lang_mask = Vec::with_capacity(b * len);
+        for &row in rows {
+            state.extend(state_stats.normalize(&self.shard.state[row * sd..(row + 1) * sd]));
+            let (chunk_values, pad) =
+                self.shard.action_chunk(row, chunk).ok_or_else(|| PolicyError::Input(format!("shard row {row} is in no episode")))?;
+            actions.extend(action_stats.normalize(&chunk_values));
+            is_pad.extend(pad);
+            let task = self.shard.task_index[row] as usize;
+            lang_tokens.extend_from_slice(&all_ids[task * len..(task + 1) * len]);
+            lang_mask.extend(all_mask[task * len..(task + 1) * len].iter().map(|&m| m != 0));
+        }
+        Ok(Batch {
+            images,
+            lang_tokens,
+            lang_mask,
+            lang_len: len,
+            state: HostTensor::new(vec![b, sd], state),
+            actions: Some(HostTensor::new(vec![b, chunk, ad], actions)),
+            action_is_pad: Some(is_pad),
+        })
+    }
+}

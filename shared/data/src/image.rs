@@ -28,6 +28,10 @@ impl RgbImage {
     /// align_corners=false, no antialias, as torch's `interpolate`), then pad with black on the left and
     /// top only. Done once on u8 here instead of on floats in every training step, so values can
     /// differ from LeRobot's by rounding (at most 0.5/255).
+    ///
+    /// This mirrors `fedvla_policy::batch::prepare_image` (minus its final `x·2 − 1`), which works on
+    /// f32 tensors; this crate must not depend on the policy (burn), so the two are kept in step by
+    /// testing both against the same torch reference values.
     pub fn resized_with_pad(&self, width: u32, height: u32) -> RgbImage {
         let ratio = (f64::from(self.width) / f64::from(width)).max(f64::from(self.height) / f64::from(height));
         let scaled_w = ((f64::from(self.width) / ratio) as u32).clamp(1, width);
@@ -43,7 +47,8 @@ impl RgbImage {
         RgbImage { width, height, data }
     }
 
-    /// Bilinear resize with torch's `align_corners=false` source coordinates.
+    /// Bilinear resize with torch's `align_corners=false` source coordinates, rounded to u8; the u8
+    /// counterpart of `fedvla_policy::batch::resize_bilinear`.
     pub fn resized_bilinear(&self, width: u32, height: u32) -> RgbImage {
         if (width, height) == (self.width, self.height) {
             return self.clone();
@@ -93,10 +98,37 @@ mod tests {
 
     #[test]
     fn bilinear_upsample_matches_torch() {
-        // torch.nn.functional.interpolate([[0, 100]], size=4, mode="linear", align_corners=False) = [0, 25, 75, 100]
+        // The policy's reference scaled by 100 to stay exact in u8:
+        // torch F.interpolate([[0., 1.]], size=(1, 4), mode="bilinear", align_corners=False) = [0, .25, .75, 1]
         let image = RgbImage::new(2, 1, vec![0, 0, 0, 100, 100, 100]).expect("valid");
         let out = image.resized_bilinear(4, 1);
         let red: Vec<u8> = out.data.chunks(3).map(|p| p[0]).collect();
         assert_eq!(red, vec![0, 25, 75, 100]);
+    }
+
+    #[test]
+    fn resize_with_pad_pads_left_and_top_like_the_policy() {
+        // The policy's case: a 2x4 (HxW) image into 4x4 keeps its 2x4 content under two rows of padding.
+        let out = RgbImage::new(4, 2, vec![255; 4 * 2 * 3]).expect("valid").resized_with_pad(4, 4);
+        assert!(out.data[..4 * 2 * 3].iter().all(|&v| v == 0));
+        assert!(out.data[4 * 2 * 3..].iter().all(|&v| v == 255));
+    }
+
+    #[test]
+    fn downsample_with_pad_matches_torch() {
+        // 3x6 (HxW) into 4x4: ratio 1.5, content 2x4 under two padding rows. torch 2.14:
+        // F.interpolate(img, size=(2, 4), mode="bilinear", align_corners=False) =
+        // [[54.6875, 80.9375, 140.9375, 82.8125], [177.5, 91.25, 70.625, 80.0]]
+        let grey: [u8; 18] = [10, 200, 30, 90, 250, 0, 60, 5, 140, 220, 35, 180, 255, 120, 75, 15, 100, 45];
+        let image = RgbImage::new(6, 3, grey.iter().flat_map(|&v| [v; 3]).collect()).expect("valid");
+        let out = image.resized_with_pad(4, 4);
+        let red: Vec<u8> = out.data.chunks(3).map(|p| p[0]).collect();
+        #[rustfmt::skip]
+        assert_eq!(red, vec![
+            0, 0, 0, 0,
+            0, 0, 0, 0,
+            55, 81, 141, 83,
+            178, 91, 71, 80,
+        ]);
     }
 }

@@ -5,6 +5,7 @@ pub mod app;
 pub mod config;
 pub mod connection;
 pub mod coordinator;
+pub mod datagen;
 pub mod error;
 pub mod linreg;
 pub mod native_client;

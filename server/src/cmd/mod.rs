@@ -1,6 +1,7 @@
 //! Subcommands. To add one: create `src/cmd/<name>.rs` with `pub struct Args` (clap::Args) and
 //! `pub fn run(args: Args) -> anyhow::Result<()>`, then add a variant to [`Command`] and an arm to [`run`].
 
+mod gen_data;
 mod join;
 mod serve;
 mod simulate;
@@ -30,6 +31,8 @@ pub enum Command {
     Join(join::Args),
     /// Run a server and N native clients in one process over loopback WebSockets.
     Simulate(simulate::Args),
+    /// Record scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset.
+    GenData(gen_data::Args),
 }
 
 pub fn run(command: Command) -> anyhow::Result<()> {
@@ -37,6 +40,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Serve(args) => serve::run(args),
         Command::Join(args) => join::run(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::GenData(args) => gen_data::run(args),
     }
 }
 

@@ -1,0 +1,48 @@
+//! `fedvla gen-data`: scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset (see
+//! `fedvla_server::datagen`).
+
+use std::path::PathBuf;
+
+use fedvla_server::datagen::{GenDataOptions, GenProgress, generate_dataset};
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Successful episodes to record; seeds the expert fails on are skipped.
+    #[arg(long)]
+    episodes: usize,
+    /// Output directory (must not hold a dataset yet).
+    #[arg(long)]
+    out: PathBuf,
+    /// Sim seed of the first episode; later episodes take the following seeds.
+    #[arg(long, default_value_t = GenDataOptions::default().seed)]
+    seed: u64,
+    /// Width and height of both cameras, in pixels (even).
+    #[arg(long, default_value_t = GenDataOptions::default().image_size)]
+    image_size: u32,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let opts = GenDataOptions { episodes: args.episodes, seed: args.seed, image_size: args.image_size };
+    let bar = ProgressBar::new(args.episodes as u64);
+    bar.set_style(ProgressStyle::with_template(
+        "[{bar:30}] {pos}/{len} episodes, {msg} ({elapsed}, eta {eta})",
+    )?);
+    let summary = generate_dataset(&args.out, &opts, |event| match event {
+        GenProgress::Frame { total_frames, .. } => bar.set_message(format!("{total_frames} frames")),
+        GenProgress::EpisodeWritten { .. } => bar.inc(1),
+        GenProgress::Skipped { seed, frames } => {
+            bar.println(format!("warning: the expert failed on seed {seed} ({frames} frames); skipped"));
+        }
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "wrote {} episodes, {} frames in {:.1} s ({:.1} frames/s) to {}",
+        summary.episodes,
+        summary.frames,
+        summary.elapsed.as_secs_f64(),
+        summary.frames_per_second(),
+        summary.root.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,201 @@
+//! Recording the SO-100 sim's scripted expert as a LeRobot v3.0 dataset: `fedvla gen-data`, and the
+//! embedded default dataset a SmolVLA run records on first use.
+//!
+//! Successful episodes take consecutive seeds from `seed` on; a seed whose episode the expert fails
+//! is skipped (and reported), so the dataset holds only demonstrations that solve the task. One
+//! thread simulates and renders the next episode while another encodes the current one (the
+//! writer encodes its two cameras in parallel): the output depends on the seed only.
+
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
+use fedvla_sim::{Camera, Expert, FPS, Scene, TASK, render};
+
+/// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
+pub const MAX_EPISODE_FRAMES: u32 = 400;
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GenDataOptions {
+    /// Successful episodes to record.
+    pub episodes: usize,
+    /// Seed of the first scene; later attempts use the following seeds.
+    pub seed: u64,
+    /// Width and height of both cameras (even, for yuv420p video).
+    pub image_size: u32,
+}
+
+impl Default for GenDataOptions {
+    fn default() -> Self {
+        Self { episodes: 50, seed: 0, image_size: 256 }
+    }
+}
+
+/// What [`generate_dataset`] reports while it works.
+#[derive(Debug, Clone, PartialEq)]
+pub enum GenProgress {
+    /// A frame of episode `episode` was encoded; `total_frames` counts the whole dataset so far.
+    Frame { episode: usize, frame: usize, episode_length: usize, total_frames: u64 },
+    /// Episode `episode` (recorded from `seed`) is written.
+    EpisodeWritten { episode: usize, seed: u64, frames: usize },
+    /// The expert failed on `seed` within `frames` frames; no episode was recorded from it.
+    Skipped { seed: u64, frames: u32 },
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct GenSummary {
+    pub root: PathBuf,
+    pub episodes: usize,
+    pub frames: u64,
+    /// The seed of every written episode, in episode order.
+    pub seeds: Vec<u64>,
+    /// Seeds the expert failed on.
+    pub skipped_seeds: Vec<u64>,
+    pub elapsed: Duration,
+}
+
+impl GenSummary {
+    pub fn frames_per_second(&self) -> f64 {
+        self.frames as f64 / self.elapsed.as_secs_f64().max(f64::EPSILON)
+    }
+}
+
+/// The expert's episode on one seed, every frame with its state, action and camera images.
+struct RecordedEpisode {
+    seed: u64,
+    episode: Episode,
+}
+
+/// Records `opts.episodes` successful expert episodes into a new LeRobot v3.0 dataset at `out` (which
+/// must not hold a dataset yet), calling `progress` on the caller's thread as the work goes on.
+///
+/// Gives up when the expert fails on more seeds than `max(10, opts.episodes)`: it succeeds on about
+/// nine scenes in ten, so that many failures mean the sim or the expert is broken.
+pub fn generate_dataset(out: &Path, opts: &GenDataOptions, mut progress: impl FnMut(GenProgress)) -> anyhow::Result<GenSummary> {
+    anyhow::ensure!(opts.episodes > 0, "no episodes to record");
+    anyhow::ensure!(
+        opts.image_size > 0 && opts.image_size.is_multiple_of(2),
+        "image size {} must be even and non-zero (yuv420p video)",
+        opts.image_size
+    );
+    let started = Instant::now();
+    let cameras = Camera::ALL.iter().map(|c| CameraSpec::new(c.name(), opts.image_size, opts.image_size)).collect();
+    let mut spec = DatasetSpec::so100(cameras);
+    spec.fps = FPS;
+
+    let (events, event_rx) = mpsc::channel::<GenProgress>();
+    let frame_events = events.clone();
+    let writer = DatasetWriter::create(out, spec)
+        .with_context(|| format!("creating the dataset at {}", out.display()))?
+        .with_progress(move |p| {
+            // Sends cannot fail: the receiver is drained until every sender is gone (also below).
+            let _ = frame_events.send(GenProgress::Frame {
+                episode: p.episode_index,
+                frame: p.episode_frames_done,
+                episode_length: p.episode_length,
+                total_frames: p.total_frames_written,
+            });
+        });
+    let max_failures = opts.episodes.max(10);
+
+    let (written, seeds, skipped_seeds) = std::thread::scope(|scope| {
+        let (episode_tx, episode_rx) = mpsc::sync_channel::<RecordedEpisode>(1);
+        let recorder_events = events.clone();
+        let recorder = scope.spawn(move || record_episodes(opts, max_failures, &episode_tx, &recorder_events));
+        let writer_events = events;
+        let encoder = scope.spawn(move || write_episodes(writer, opts.episodes, &episode_rx, &writer_events));
+        // Ends once the recorder and the writer (whose progress callback holds a sender) are done.
+        for event in event_rx {
+            progress(event);
+        }
+        let recorded = recorder.join().map_err(|_| anyhow::anyhow!("the episode recorder panicked"))?;
+        let written = encoder.join().map_err(|_| anyhow::anyhow!("the dataset writer panicked"))?;
+        // A recorder that stops early leaves the writer short of episodes: its error is the cause.
+        let skipped = recorded?;
+        let (written, seeds) = written?;
+        anyhow::Ok((written, seeds, skipped))
+    })?;
+    Ok(GenSummary {
+        root: written.root,
+        episodes: written.total_episodes as usize,
+        frames: written.total_frames,
+        seeds,
+        skipped_seeds,
+        elapsed: started.elapsed(),
+    })
+}
+
+/// Runs the expert on seeds `opts.seed..` and sends every successful episode to `episodes` until
+/// `opts.episodes` were sent; returns the seeds it skipped. Stops early when the writer has hung up.
+fn record_episodes(
+    opts: &GenDataOptions,
+    max_failures: usize,
+    episodes: &mpsc::SyncSender<RecordedEpisode>,
+    events: &mpsc::Sender<GenProgress>,
+) -> anyhow::Result<Vec<u64>> {
+    let mut skipped = Vec::new();
+    let mut sent = 0;
+    let mut seed = opts.seed;
+    while sent < opts.episodes {
+        match record_episode(seed, opts.image_size) {
+            Ok(episode) => {
+                if episodes.send(RecordedEpisode { seed, episode }).is_err() {
+                    break;
+                }
+                sent += 1;
+            }
+            Err(frames) => {
+                skipped.push(seed);
+                let _ = events.send(GenProgress::Skipped { seed, frames });
+                anyhow::ensure!(
+                    skipped.len() <= max_failures,
+                    "the expert failed on {} seeds ({skipped:?}) before {} episodes succeeded; giving up",
+                    skipped.len(),
+                    opts.episodes
+                );
+            }
+        }
+        seed = seed.checked_add(1).context("ran out of seeds")?;
+    }
+    Ok(skipped)
+}
+
+/// The expert's episode on the scene of `seed` with both cameras rendered at `size`x`size` before
+/// every action (LeRobot's observation-then-action order), or the frames it ran if it failed.
+fn record_episode(seed: u64, size: u32) -> Result<Episode, u32> {
+    let mut scene = Scene::new(seed);
+    let mut expert = Expert::new(&scene);
+    let mut frames = Vec::new();
+    while !expert.done() && scene.frame() < MAX_EPISODE_FRAMES {
+        let state = scene.state().to_vec();
+        let images = Camera::ALL
+            .iter()
+            .map(|&camera| RgbImage { width: size, height: size, data: render(&scene, camera, size as usize, size as usize) })
+            .collect();
+        let action = expert.act(&scene);
+        scene.step(action);
+        frames.push(Frame { state, action: action.to_vec(), images });
+    }
+    if scene.success() { Ok(Episode { task: TASK.to_string(), frames }) } else { Err(scene.frame()) }
+}
+
+/// Encodes the episodes received into `writer` and, once all `expected` arrived, finishes the dataset;
+/// returns it with the episodes' seeds. Short of episodes it does not finish, so no metadata marks
+/// the directory as a complete dataset.
+fn write_episodes(
+    mut writer: DatasetWriter,
+    expected: usize,
+    episodes: &mpsc::Receiver<RecordedEpisode>,
+    events: &mpsc::Sender<GenProgress>,
+) -> anyhow::Result<(WrittenDataset, Vec<u64>)> {
+    let mut seeds = Vec::new();
+    for recorded in episodes {
+        writer.add_episode(&recorded.episode).with_context(|| format!("writing the episode of seed {}", recorded.seed))?;
+        let _ = events.send(GenProgress::EpisodeWritten { episode: seeds.len(), seed: recorded.seed, frames: recorded.episode.frames.len() });
+        seeds.push(recorded.seed);
+    }
+    anyhow::ensure!(seeds.len() == expected, "recording stopped after {} of {expected} episodes", seeds.len());
+    Ok((writer.finish()?, seeds))
+}

@@ -11,4 +11,6 @@ pub mod linreg;
 pub mod native_client;
 pub mod run_dir;
 pub mod server;
+pub mod sim_eval;
+pub mod smolvla_workload;
 pub mod workload;

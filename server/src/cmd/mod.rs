@@ -1,8 +1,10 @@
 //! Subcommands. To add one: create `src/cmd/<name>.rs` with `pub struct Args` (clap::Args) and
 //! `pub fn run(args: Args) -> anyhow::Result<()>`, then add a variant to [`Command`] and an arm to [`run`].
 
+mod eval;
 mod gen_data;
 mod join;
+mod parity;
 mod serve;
 mod simulate;
 
@@ -15,6 +17,7 @@ use clap::Subcommand;
 use fedvla_federation::{BoxError, FedAvg, Strategy};
 use fedvla_server::config::{RunConfig, StrategyKind, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
+use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::run_dir::RunDir;
 use fedvla_server::server::ServerParts;
 use fedvla_server::workload::Workload;
@@ -31,6 +34,10 @@ pub enum Command {
     Join(join::Args),
     /// Run a server and N native clients in one process over loopback WebSockets.
     Simulate(simulate::Args),
+    /// Roll a policy (or the scripted expert) out in the sim: success rate, videos, results.json.
+    Eval(eval::Args),
+    /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
+    Parity(parity::Args),
     /// Record scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset.
     GenData(gen_data::Args),
 }
@@ -40,6 +47,8 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Serve(args) => serve::run(args),
         Command::Join(args) => join::run(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::Eval(args) => eval::run(args),
+        Command::Parity(args) => parity::run(args),
         Command::GenData(args) => gen_data::run(args),
     }
 }
@@ -70,8 +79,15 @@ impl ConfigArgs {
 fn server_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerParts> {
     match config.workload {
         WorkloadKind::Linreg => parts_of(&LinRegWorkload::from_config(&config), config, run_dir),
+        WorkloadKind::Smolvla => {
+            let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
+            parts_of(&workload, config, run_dir)
+        }
     }
 }
+
+/// Where a run keeps its clients' shards and the server's held-out shard.
+const SHARDS_DIR: &str = "shards";
 
 fn parts_of<W: Workload>(
     workload: &W,

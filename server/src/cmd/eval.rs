@@ -1,0 +1,113 @@
+//! `fedvla eval`: a policy (or the scripted expert) in the SO-100 sim over a range of seeds, with a
+//! video per episode and results.json (see `fedvla_server::sim_eval`).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use burn::tensor::Device;
+use fedvla_learner::rollout::SimPolicy;
+use fedvla_policy::PolicyDir;
+use fedvla_server::sim_eval::{
+    Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, DEFAULT_VIDEO_SIZE, RESULTS_FILE, SimEvalOptions,
+    evaluate_in_sim,
+};
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(clap::Args)]
+#[command(group(clap::ArgGroup::new("agent").required(true).args(["policy", "expert"])))]
+pub struct Args {
+    /// LeRobot SmolVLA policy directory (config.json, model.safetensors, processor statistics and
+    /// a backbone folder with tokenizer.json).
+    #[arg(long)]
+    policy: Option<PathBuf>,
+    /// Evaluate the scripted expert instead of a policy.
+    #[arg(long)]
+    expert: bool,
+    /// Number of episodes; episode i runs on sim seed `--seed + i`.
+    #[arg(long)]
+    episodes: usize,
+    /// Output directory: episode_<i>.mp4 and results.json.
+    #[arg(long)]
+    out: PathBuf,
+    /// First sim seed (training data uses seeds from 0).
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    seed: u64,
+    /// Frame budget of an episode, at 30 fps.
+    #[arg(long, default_value_t = DEFAULT_MAX_FRAMES)]
+    max_frames: usize,
+    /// Width and height of each camera in the videos (even); 0 writes no videos.
+    #[arg(long, default_value_t = DEFAULT_VIDEO_SIZE)]
+    video_size: u32,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let opts = SimEvalOptions {
+        episodes: args.episodes,
+        seed: args.seed,
+        max_frames: args.max_frames,
+        video_size: (args.video_size > 0).then_some(args.video_size),
+    };
+    let loaded = args.policy.as_deref().map(load_policy).transpose()?;
+    let source = args.policy.as_ref().map(|p| p.display().to_string());
+    let agent = match (&loaded, &source) {
+        (Some(policy), Some(source)) => Agent::Policy { policy, source: source.as_str() },
+        _ => Agent::Expert,
+    };
+
+    let bar = ProgressBar::new(args.episodes as u64);
+    bar.set_style(ProgressStyle::with_template(
+        "[{bar:30}] {pos}/{len} episodes {msg} ({elapsed}, eta {eta})",
+    )?);
+    let mut successes = 0;
+    let started = Instant::now();
+    let summary = evaluate_in_sim(agent, &opts, &args.out, |_, result| {
+        successes += usize::from(result.success);
+        bar.inc(1);
+        bar.set_message(format!("{successes} succeeded"));
+    })?;
+    bar.finish_and_clear();
+    let elapsed = started.elapsed();
+
+    let frames: usize = summary.episodes.iter().map(|e| e.length).sum();
+    println!(
+        "{}: {}/{} episodes succeeded ({:.1}%), mean length {:.1} frames",
+        summary.policy,
+        summary.episodes.iter().filter(|e| e.success).count(),
+        summary.episodes.len(),
+        summary.success_rate * 100.0,
+        summary.mean_length,
+    );
+    println!(
+        "{frames} frames in {:.1} s ({:.1} ms per frame, acting, simulating and filming)",
+        elapsed.as_secs_f64(),
+        elapsed.as_secs_f64() * 1000.0 / frames.max(1) as f64,
+    );
+    println!("results in {}", args.out.join(RESULTS_FILE).display());
+    if !summary.video_errors.is_empty() {
+        let lines: Vec<String> = summary
+            .video_errors
+            .iter()
+            .map(|e| format!("episode {}: {}", e.episode, e.message))
+            .collect();
+        anyhow::bail!(
+            "{} of {} videos could not be written (results.json is complete):\n{}",
+            lines.len(),
+            summary.episodes.len(),
+            lines.join("\n")
+        );
+    }
+    Ok(())
+}
+
+/// A policy directory as a sim policy on the CPU (burn's flex backend).
+fn load_policy(dir: &std::path::Path) -> anyhow::Result<SimPolicy> {
+    let policy = PolicyDir::load(dir).with_context(|| format!("loading policy {}", dir.display()))?;
+    let stats = policy.stats.clone().with_context(|| {
+        format!("{}: no normalisation statistics (policy_preprocessor/postprocessor files)", dir.display())
+    })?;
+    let tokenizer = policy.tokenizer()?.with_context(|| {
+        format!("{}: no tokenizer.json in the policy's backbone folder", dir.display())
+    })?;
+    Ok(SimPolicy::new(&policy.cfg, &policy.weights, stats, &tokenizer, &Device::flex())?)
+}

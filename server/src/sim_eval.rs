@@ -1,0 +1,218 @@
+//! Evaluation in the SO-100 simulation: roll a policy (or the scripted expert) out over a range of
+//! seeds, film every episode (top and wrist cameras side by side, H.264 mp4) and write
+//! `results.json`. Used by `fedvla eval` and by the federation server after rounds.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use fedvla_data::RgbImage;
+use fedvla_data::video::{CameraVideoWriter, VideoEncoding};
+use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
+use fedvla_sim::{Camera, Expert, FPS, Scene, render};
+use serde::Serialize;
+
+/// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
+/// ones no policy was trained on.
+pub const DEFAULT_SEED: u64 = 10_000;
+/// Frame budget of an episode (10 s at 30 fps; the expert needs 150-250 frames).
+pub const DEFAULT_MAX_FRAMES: usize = 300;
+/// Width and height of each camera in the videos.
+pub const DEFAULT_VIDEO_SIZE: u32 = 192;
+/// Name of the results file in the output directory.
+pub const RESULTS_FILE: &str = "results.json";
+
+/// Who acts in the episodes.
+#[derive(Clone, Copy)]
+pub enum Agent<'a> {
+    /// A policy; `source` (its directory, or whatever identifies it) is recorded as `policy` in
+    /// results.json.
+    Policy { policy: &'a SimPolicy, source: &'a str },
+    /// The scripted expert, an upper reference for a policy's success rate.
+    Expert,
+}
+
+impl Agent<'_> {
+    fn label(&self) -> &str {
+        match self {
+            Agent::Policy { source, .. } => source,
+            Agent::Expert => "expert",
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct SimEvalOptions {
+    pub episodes: usize,
+    /// Episode i runs on the scene of seed `seed + i`.
+    pub seed: u64,
+    pub max_frames: usize,
+    /// Size of each camera in the episode videos (even); `None` films nothing.
+    pub video_size: Option<u32>,
+}
+
+impl Default for SimEvalOptions {
+    fn default() -> Self {
+        Self {
+            episodes: 10,
+            seed: DEFAULT_SEED,
+            max_frames: DEFAULT_MAX_FRAMES,
+            video_size: Some(DEFAULT_VIDEO_SIZE),
+        }
+    }
+}
+
+/// An episode whose video could not be written; its result is still counted.
+#[derive(Debug, Clone, Serialize)]
+pub struct VideoError {
+    pub episode: usize,
+    pub message: String,
+}
+
+/// What results.json holds.
+#[derive(Debug, Clone, Serialize)]
+pub struct SimEvalSummary {
+    pub episodes: Vec<EpisodeResult>,
+    pub success_rate: f64,
+    pub mean_length: f64,
+    /// The policy's source, or "expert".
+    pub policy: String,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub video_errors: Vec<VideoError>,
+}
+
+/// Path of episode `i`'s video in `out`.
+pub fn video_path(out: &Path, episode: usize) -> PathBuf {
+    out.join(format!("episode_{episode}.mp4"))
+}
+
+/// Runs `opts.episodes` episodes of `agent` and writes their videos and results.json to `out`.
+/// `progress` is called after every episode with its index and result.
+///
+/// A video that cannot be written does not stop the evaluation: the episode still counts, the
+/// failure is listed in [`SimEvalSummary::video_errors`] (and results.json), and the partial file
+/// is removed. Errors are returned for what leaves no result to report: the policy failing to act
+/// or results.json not being written.
+pub fn evaluate_in_sim(
+    agent: Agent<'_>,
+    opts: &SimEvalOptions,
+    out: &Path,
+    mut progress: impl FnMut(usize, &EpisodeResult),
+) -> anyhow::Result<SimEvalSummary> {
+    anyhow::ensure!(opts.episodes > 0, "no episodes to evaluate");
+    if let Some(size) = opts.video_size {
+        anyhow::ensure!(size > 0 && size % 2 == 0, "video size {size} must be even and non-zero (yuv420p)");
+    }
+    fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let mut episodes = Vec::with_capacity(opts.episodes);
+    let mut video_errors = Vec::new();
+    for i in 0..opts.episodes {
+        let seed = opts.seed + i as u64;
+        let mut film = opts
+            .video_size
+            .map(|size| Film::start(&video_path(out, i), size));
+        let mut on_frame = |scene: &Scene| {
+            if let Some(film) = &mut film {
+                film.record(scene);
+            }
+        };
+        let result = match agent {
+            Agent::Policy { policy, .. } => run_episode(policy, seed, opts.max_frames, &mut on_frame)
+                .with_context(|| format!("policy rollout of episode {i} (seed {seed})"))?,
+            Agent::Expert => run_expert(seed, opts.max_frames, &mut on_frame),
+        };
+        if let Some(Err(message)) = film.map(Film::finish) {
+            video_errors.push(VideoError { episode: i, message });
+        }
+        progress(i, &result);
+        episodes.push(result);
+    }
+    let n = episodes.len() as f64;
+    let summary = SimEvalSummary {
+        success_rate: episodes.iter().filter(|e| e.success).count() as f64 / n,
+        mean_length: episodes.iter().map(|e| e.length as f64).sum::<f64>() / n,
+        episodes,
+        policy: agent.label().to_string(),
+        video_errors,
+    };
+    write_results(&out.join(RESULTS_FILE), &summary)?;
+    Ok(summary)
+}
+
+/// The scripted expert from `Scene::new(seed)`, ended like a policy episode: on success or when
+/// the budget runs out (after its plan the expert holds its last pose, so it gets no extra help).
+fn run_expert(seed: u64, max_frames: usize, mut on_frame: impl FnMut(&Scene)) -> EpisodeResult {
+    let mut scene = Scene::new(seed);
+    let mut expert = Expert::new(&scene);
+    on_frame(&scene);
+    let mut length = 0;
+    while length < max_frames && !scene.success() {
+        scene.step(expert.act(&scene));
+        length += 1;
+        on_frame(&scene);
+    }
+    EpisodeResult { seed, success: scene.success(), length }
+}
+
+/// Written through a temporary name, so a reader never sees half a file.
+fn write_results(path: &Path, summary: &SimEvalSummary) -> anyhow::Result<()> {
+    let tmp = path.with_extension("json.partial");
+    let json = serde_json::to_string_pretty(summary).context("serialising the results")?;
+    fs::write(&tmp, json).with_context(|| format!("writing {}", tmp.display()))?;
+    fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+/// One episode's video: every camera at `size`x`size`, side by side in [`Camera::ALL`] order. The
+/// first error stops the filming and is kept for [`Film::finish`].
+struct Film {
+    path: PathBuf,
+    size: u32,
+    writer: Result<CameraVideoWriter, String>,
+}
+
+impl Film {
+    fn start(path: &Path, size: u32) -> Self {
+        let cameras = Camera::ALL.len() as u32;
+        // One key frame a second: browsers seek quickly enough, and the files stay small.
+        let encoding = VideoEncoding { gop: FPS, ..VideoEncoding::default() };
+        let writer = CameraVideoWriter::create(path, size * cameras, size, FPS, encoding)
+            .map_err(|e| e.to_string());
+        Self { path: path.to_path_buf(), size, writer }
+    }
+
+    fn record(&mut self, scene: &Scene) {
+        let Ok(writer) = &mut self.writer else { return };
+        let frame = side_by_side(scene, self.size as usize);
+        if let Err(e) = RgbImage::new(frame.0, self.size, frame.1)
+            .and_then(|image| writer.push_frame(&image))
+        {
+            self.writer = Err(e.to_string());
+        }
+    }
+
+    fn finish(self) -> Result<(), String> {
+        let result = self.writer.and_then(|w| w.finish().map_err(|e| e.to_string()));
+        if result.is_err() {
+            // A partial mp4 has no index (moov) and plays nowhere; leave no such file behind. The
+            // file may never have been created, so a failed removal says nothing worth reporting.
+            let _ = fs::remove_file(&self.path);
+        }
+        result.map_err(|e| format!("{}: {e}", self.path.display()))
+    }
+}
+
+/// Renders every camera at `size`x`size` and lays them out left to right: (width, RGB HWC).
+fn side_by_side(scene: &Scene, size: usize) -> (u32, Vec<u8>) {
+    let views: Vec<Vec<u8>> = Camera::ALL
+        .iter()
+        .map(|&camera| render(scene, camera, size, size))
+        .collect();
+    let row = size * 3;
+    let mut data = Vec::with_capacity(views.len() * row * size);
+    for y in 0..size {
+        for view in &views {
+            data.extend_from_slice(&view[y * row..(y + 1) * row]);
+        }
+    }
+    ((views.len() * size) as u32, data)
+}

@@ -1,0 +1,135 @@
+//! Evaluation in the sim: the scripted expert's success rate on the evaluation seeds (the
+//! acceptance bar for the sim and the success check), a tiny random policy through `fedvla eval`,
+//! and a video that cannot be written costing no results.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::{Command, Output};
+
+use fedvla_policy::policy_dir::{Backbone, export};
+use fedvla_policy::{FeatureStats, NormStats, SmolVlaConfig, WordTokenizer};
+use fedvla_server::sim_eval::{
+    Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, RESULTS_FILE, SimEvalOptions, evaluate_in_sim,
+    video_path,
+};
+use serde_json::Value;
+
+fn fedvla(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_fedvla"))
+        .args(args)
+        .output()
+        .expect("fedvla runs")
+}
+
+fn results(out: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join(RESULTS_FILE)).unwrap()).unwrap()
+}
+
+#[test]
+fn expert_succeeds_on_at_least_90_percent_of_24_eval_seeds() {
+    let out = tempfile::tempdir().unwrap();
+    let opts = SimEvalOptions {
+        episodes: 24,
+        seed: DEFAULT_SEED,
+        max_frames: DEFAULT_MAX_FRAMES,
+        video_size: None,
+    };
+    let mut reported = Vec::new();
+    let summary = evaluate_in_sim(Agent::Expert, &opts, out.path(), |i, r| reported.push((i, r.seed))).unwrap();
+
+    let failed: Vec<u64> = summary.episodes.iter().filter(|e| !e.success).map(|e| e.seed).collect();
+    assert!(summary.success_rate >= 0.9, "success rate {}; failed seeds {failed:?}", summary.success_rate);
+    let expected: Vec<(usize, u64)> = (0..24).map(|i| (i, DEFAULT_SEED + i as u64)).collect();
+    assert_eq!(reported, expected);
+    assert!(!video_path(out.path(), 0).exists(), "video_size None films nothing");
+
+    let json = results(out.path());
+    assert_eq!(json["policy"], "expert");
+    assert_eq!(json["episodes"].as_array().unwrap().len(), 24);
+    assert_eq!(json["episodes"][3]["seed"], DEFAULT_SEED + 3);
+    assert_eq!(json["success_rate"], summary.success_rate);
+    // Successful episodes end when the cube is in the bowl, well inside the budget.
+    for e in summary.episodes.iter().filter(|e| e.success) {
+        assert!(e.length < DEFAULT_MAX_FRAMES, "seed {} took {} frames", e.seed, e.length);
+    }
+    println!("expert: {:.1}% of 24 eval seeds, mean length {:.1}", summary.success_rate * 100.0, summary.mean_length);
+}
+
+#[test]
+fn tiny_random_policy_is_rolled_out_filmed_and_reported() {
+    let tmp = tempfile::tempdir().unwrap();
+    let policy = tmp.path().join("policy");
+    let cfg = SmolVlaConfig::tiny();
+    let weights = fedvla_policy::weights::init_random(&cfg.param_specs(), 0);
+    let six = |mean: f32, std: f32| FeatureStats { mean: vec![mean; 6], std: vec![std; 6] };
+    let stats = NormStats {
+        features: BTreeMap::from([
+            ("observation.state".to_string(), six(0.0, 30.0)),
+            ("action".to_string(), six(0.0, 30.0)),
+        ]),
+    };
+    let tokenizer = WordTokenizer::from_texts([fedvla_sim::TASK]);
+    export(&policy, &cfg, &weights, &stats, Backbone::Generated(&tokenizer)).unwrap();
+
+    let out = tmp.path().join("eval");
+    let run = fedvla(&[
+        "eval",
+        "--policy",
+        policy.to_str().unwrap(),
+        "--episodes",
+        "1",
+        "--max-frames",
+        "60",
+        "--video-size",
+        "64",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(run.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&run.stderr));
+    println!("{stdout}");
+
+    let json = results(&out);
+    assert_eq!(json["policy"], policy.to_str().unwrap());
+    let episodes = json["episodes"].as_array().unwrap();
+    assert_eq!(episodes.len(), 1);
+    assert_eq!(episodes[0]["seed"], DEFAULT_SEED);
+    let length = episodes[0]["length"].as_u64().unwrap();
+    assert!((1..=60).contains(&length), "length {length}");
+    assert!(json.get("video_errors").is_none(), "{json}");
+
+    let video = std::fs::read(video_path(&out, 0)).unwrap();
+    assert_eq!(&video[4..8], b"ftyp");
+    assert!(video.windows(4).any(|w| w == b"moov"), "finished mp4 has its index");
+    // 61 frames of 128x64 (the first before any action): far more than the boxes alone.
+    assert!(video.len() > 4096, "{} bytes", video.len());
+}
+
+#[test]
+fn a_video_that_cannot_be_written_keeps_every_result_and_fails_the_command() {
+    let out = tempfile::tempdir().unwrap();
+    // A directory where episode 0's video should go: creating the file fails.
+    std::fs::create_dir(video_path(out.path(), 0)).unwrap();
+    let run = fedvla(&[
+        "eval",
+        "--expert",
+        "--episodes",
+        "2",
+        "--max-frames",
+        "20",
+        "--video-size",
+        "32",
+        "--out",
+        out.path().to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success(), "{}", String::from_utf8_lossy(&run.stdout));
+    assert!(stderr.contains("episode 0"), "{stderr}");
+
+    let json = results(out.path());
+    assert_eq!(json["episodes"].as_array().unwrap().len(), 2);
+    assert_eq!(json["video_errors"].as_array().unwrap().len(), 1);
+    assert_eq!(json["video_errors"][0]["episode"], 0);
+    let second = std::fs::read(video_path(out.path(), 1)).unwrap();
+    assert_eq!(&second[4..8], b"ftyp");
+}

@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Command, Output};
 
+use fedvla_data::video::VideoFile;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::{FeatureStats, NormStats, SmolVlaConfig, WordTokenizer};
 use fedvla_server::sim_eval::{
@@ -103,6 +104,16 @@ fn tiny_random_policy_is_rolled_out_filmed_and_reported() {
     assert!(video.windows(4).any(|w| w == b"moov"), "finished mp4 has its index");
     // 61 frames of 128x64 (the first before any action): far more than the boxes alone.
     assert!(video.len() > 4096, "{} bytes", video.len());
+    let decoded = VideoFile::open(&video_path(&out, 0)).unwrap();
+    assert_eq!(decoded.frame_count() as u64, length + 1, "the start and every step");
+    let first = &decoded.frames_at(&[0.0], 1e-3).unwrap()[0];
+    assert_eq!((first.width, first.height), (128, 64), "top and wrist side by side");
+    let half = |x0: usize| -> Vec<u8> {
+        first.data.chunks_exact(128 * 3).flat_map(|row| row[x0 * 3..(x0 + 64) * 3].to_vec()).collect()
+    };
+    let (left, right) = (half(0), half(64));
+    let diff = left.iter().zip(&right).map(|(a, b)| u64::from(a.abs_diff(*b))).sum::<u64>() / left.len() as u64;
+    assert!(diff > 5, "the two cameras see different things (mean abs diff {diff})");
 }
 
 #[test]

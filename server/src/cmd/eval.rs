@@ -49,10 +49,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         video_size: (args.video_size > 0).then_some(args.video_size),
     };
     let loaded = args.policy.as_deref().map(load_policy).transpose()?;
-    let source = args.policy.as_ref().map(|p| p.display().to_string());
-    let agent = match (&loaded, &source) {
-        (Some(policy), Some(source)) => Agent::Policy { policy, source: source.as_str() },
-        _ => Agent::Expert,
+    let source = args.policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
+    let agent = match &loaded {
+        Some(policy) => Agent::Policy { policy, source: &source },
+        None => Agent::Expert,
     };
 
     let bar = ProgressBar::new(args.episodes as u64);

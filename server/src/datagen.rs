@@ -11,7 +11,9 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
+use fedvla_data::{
+    CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset,
+};
 use fedvla_sim::{Camera, Expert, FPS, Scene, TASK, render};
 
 /// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
@@ -29,7 +31,11 @@ pub struct GenDataOptions {
 
 impl Default for GenDataOptions {
     fn default() -> Self {
-        Self { episodes: 50, seed: 0, image_size: 256 }
+        Self {
+            episodes: 50,
+            seed: 0,
+            image_size: 256,
+        }
     }
 }
 
@@ -37,9 +43,18 @@ impl Default for GenDataOptions {
 #[derive(Debug, Clone, PartialEq)]
 pub enum GenProgress {
     /// A frame of episode `episode` was encoded; `total_frames` counts the whole dataset so far.
-    Frame { episode: usize, frame: usize, episode_length: usize, total_frames: u64 },
+    Frame {
+        episode: usize,
+        frame: usize,
+        episode_length: usize,
+        total_frames: u64,
+    },
     /// Episode `episode` (recorded from `seed`) is written.
-    EpisodeWritten { episode: usize, seed: u64, frames: usize },
+    EpisodeWritten {
+        episode: usize,
+        seed: u64,
+        frames: usize,
+    },
     /// The expert failed on `seed` within `frames` frames; no episode was recorded from it.
     Skipped { seed: u64, frames: u32 },
 }
@@ -71,9 +86,13 @@ struct RecordedEpisode {
 /// Records `opts.episodes` successful expert episodes into a new LeRobot v3.0 dataset at `out` (which
 /// must not hold a dataset yet), calling `progress` on the caller's thread as the work goes on.
 ///
-/// Gives up when the expert fails on more seeds than `max(10, opts.episodes)`: it succeeds on about
-/// nine scenes in ten, so that many failures mean the sim or the expert is broken.
-pub fn generate_dataset(out: &Path, opts: &GenDataOptions, mut progress: impl FnMut(GenProgress)) -> anyhow::Result<GenSummary> {
+/// Gives up when the expert fails on more seeds than `max(10, opts.episodes)`: it solves nearly every
+/// scene (the sim's tests require 18 of 20), so that many failures mean the sim or the expert is broken.
+pub fn generate_dataset(
+    out: &Path,
+    opts: &GenDataOptions,
+    mut progress: impl FnMut(GenProgress),
+) -> anyhow::Result<GenSummary> {
     anyhow::ensure!(opts.episodes > 0, "no episodes to record");
     anyhow::ensure!(
         opts.image_size > 0 && opts.image_size.is_multiple_of(2),
@@ -81,7 +100,10 @@ pub fn generate_dataset(out: &Path, opts: &GenDataOptions, mut progress: impl Fn
         opts.image_size
     );
     let started = Instant::now();
-    let cameras = Camera::ALL.iter().map(|c| CameraSpec::new(c.name(), opts.image_size, opts.image_size)).collect();
+    let cameras = Camera::ALL
+        .iter()
+        .map(|c| CameraSpec::new(c.name(), opts.image_size, opts.image_size))
+        .collect();
     let mut spec = DatasetSpec::so100(cameras);
     spec.fps = FPS;
 
@@ -103,15 +125,21 @@ pub fn generate_dataset(out: &Path, opts: &GenDataOptions, mut progress: impl Fn
     let (written, seeds, skipped_seeds) = std::thread::scope(|scope| {
         let (episode_tx, episode_rx) = mpsc::sync_channel::<RecordedEpisode>(1);
         let recorder_events = events.clone();
-        let recorder = scope.spawn(move || record_episodes(opts, max_failures, &episode_tx, &recorder_events));
+        let recorder =
+            scope.spawn(move || record_episodes(opts, max_failures, &episode_tx, &recorder_events));
         let writer_events = events;
-        let encoder = scope.spawn(move || write_episodes(writer, opts.episodes, &episode_rx, &writer_events));
+        let encoder =
+            scope.spawn(move || write_episodes(writer, opts.episodes, &episode_rx, &writer_events));
         // Ends once the recorder and the writer (whose progress callback holds a sender) are done.
         for event in event_rx {
             progress(event);
         }
-        let recorded = recorder.join().map_err(|_| anyhow::anyhow!("the episode recorder panicked"))?;
-        let written = encoder.join().map_err(|_| anyhow::anyhow!("the dataset writer panicked"))?;
+        let recorded = recorder
+            .join()
+            .map_err(|_| anyhow::anyhow!("the episode recorder panicked"))?;
+        let written = encoder
+            .join()
+            .map_err(|_| anyhow::anyhow!("the dataset writer panicked"))?;
         // A recorder that stops early leaves the writer short of episodes: its error is the cause.
         let skipped = recorded?;
         let (written, seeds) = written?;
@@ -172,13 +200,28 @@ fn record_episode(seed: u64, size: u32) -> Result<Episode, u32> {
         let state = scene.state().to_vec();
         let images = Camera::ALL
             .iter()
-            .map(|&camera| RgbImage { width: size, height: size, data: render(&scene, camera, size as usize, size as usize) })
+            .map(|&camera| RgbImage {
+                width: size,
+                height: size,
+                data: render(&scene, camera, size as usize, size as usize),
+            })
             .collect();
         let action = expert.act(&scene);
         scene.step(action);
-        frames.push(Frame { state, action: action.to_vec(), images });
+        frames.push(Frame {
+            state,
+            action: action.to_vec(),
+            images,
+        });
     }
-    if scene.success() { Ok(Episode { task: TASK.to_string(), frames }) } else { Err(scene.frame()) }
+    if scene.success() {
+        Ok(Episode {
+            task: TASK.to_string(),
+            frames,
+        })
+    } else {
+        Err(scene.frame())
+    }
 }
 
 /// Encodes the episodes received into `writer` and, once all `expected` arrived, finishes the dataset;
@@ -192,10 +235,20 @@ fn write_episodes(
 ) -> anyhow::Result<(WrittenDataset, Vec<u64>)> {
     let mut seeds = Vec::new();
     for recorded in episodes {
-        writer.add_episode(&recorded.episode).with_context(|| format!("writing the episode of seed {}", recorded.seed))?;
-        let _ = events.send(GenProgress::EpisodeWritten { episode: seeds.len(), seed: recorded.seed, frames: recorded.episode.frames.len() });
+        writer
+            .add_episode(&recorded.episode)
+            .with_context(|| format!("writing the episode of seed {}", recorded.seed))?;
+        let _ = events.send(GenProgress::EpisodeWritten {
+            episode: seeds.len(),
+            seed: recorded.seed,
+            frames: recorded.episode.frames.len(),
+        });
         seeds.push(recorded.seed);
     }
-    anyhow::ensure!(seeds.len() == expected, "recording stopped after {} of {expected} episodes", seeds.len());
+    anyhow::ensure!(
+        seeds.len() == expected,
+        "recording stopped after {} of {expected} episodes",
+        seeds.len()
+    );
     Ok((writer.finish()?, seeds))
 }

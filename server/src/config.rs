@@ -37,9 +37,15 @@ pub enum StrategyKind {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum WorkloadKind {
-    /// Least-squares linear regression on synthetic data (see [`crate::linreg`]).
+    /// SmolVLA's trainable tensors on SO-100 episodes (see [`crate::smolvla_workload`]).
+    Smolvla,
+    /// Least-squares linear regression on synthetic data (see [`crate::linreg`]): exercises the
+    /// federation machinery in milliseconds.
     Linreg,
 }
+
+/// The dataset path that means "record the SO-100 sim's expert episodes here on first use".
+pub const EMBEDDED_DATASET: &str = "data/so100-sim";
 
 /// How the dataset is split across clients.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -65,8 +71,11 @@ pub struct RunConfig {
     pub strategy: StrategyKind,
     pub workload: WorkloadKind,
     pub dataset: String,
+    pub dataset_episodes: usize,
+    pub num_clients: usize,
     pub partitioning: Partitioning,
     pub model_size: String,
+    pub init_policy: String,
     pub eval_every: u64,
     pub round_deadline_ms: u64,
     pub listen: String,
@@ -152,6 +161,9 @@ impl RunConfig {
                 "min-clients ({}) must be at least min-fit ({})",
                 self.min_clients, self.min_fit
             ));
+        }
+        if self.num_clients == 0 {
+            return fail("num-clients must be at least 1".into());
         }
         if self.local_steps == 0 || self.batch_size == 0 {
             return fail("local-steps and batch-size must be at least 1".into());

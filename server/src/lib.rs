@@ -12,4 +12,5 @@ pub mod native_client;
 pub mod run_dir;
 pub mod server;
 pub mod sim_eval;
+pub mod smolvla_workload;
 pub mod workload;

@@ -5,6 +5,7 @@ use fedvla_federation::{
 };
 use fedvla_server::config::WorkloadKind;
 use fedvla_server::linreg::LinRegWorkload;
+use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::workload::Workload;
 use tracing_subscriber::filter::LevelFilter;
@@ -34,6 +35,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let config = args.config.load()?;
     match config.workload {
         WorkloadKind::Linreg => join(LinRegWorkload::from_config(&config), args),
+        WorkloadKind::Smolvla => {
+            // The client cuts its shard from its own copy of the dataset, as the server partitions it.
+            let shard_dir = std::env::temp_dir().join(format!("fedvla-join-{}", std::process::id()));
+            let workload = SmolVlaWorkload::prepare(&config, &shard_dir)?;
+            join(workload, args)
+        }
     }
 }
 

@@ -17,6 +17,7 @@ use clap::Subcommand;
 use fedvla_federation::{BoxError, FedAvg, Strategy};
 use fedvla_server::config::{RunConfig, StrategyKind, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
+use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::run_dir::RunDir;
 use fedvla_server::server::ServerParts;
 use fedvla_server::workload::Workload;
@@ -78,8 +79,15 @@ impl ConfigArgs {
 fn server_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerParts> {
     match config.workload {
         WorkloadKind::Linreg => parts_of(&LinRegWorkload::from_config(&config), config, run_dir),
+        WorkloadKind::Smolvla => {
+            let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
+            parts_of(&workload, config, run_dir)
+        }
     }
 }
+
+/// Where a run keeps its clients' shards and the server's held-out shard.
+const SHARDS_DIR: &str = "shards";
 
 fn parts_of<W: Workload>(
     workload: &W,

@@ -7,6 +7,7 @@ use anyhow::Context;
 use fedvla_federation::{ClientEvent, ClientOptions, LocalTrainer, run_client};
 use fedvla_server::config::{RunConfig, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
+use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::server;
@@ -28,31 +29,43 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let config = args.config.load()?;
+    let mut config = args.config.load()?;
+    // One shard per simulated client.
+    config.num_clients = args.clients;
     anyhow::ensure!(
         args.clients >= config.min_clients,
         "--clients {} is below min-clients {}: no round would start",
         args.clients,
         config.min_clients
     );
+    let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
+    // Progress bars own the terminal: only warnings go to stderr, the full log to server.log.
+    super::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
+    println!("run directory: {}", run_dir.path().display());
     match config.workload {
         WorkloadKind::Linreg => {
-            simulate(&LinRegWorkload::from_config(&config), config, args.clients)
+            simulate(&LinRegWorkload::from_config(&config), config, args.clients, run_dir)
+        }
+        WorkloadKind::Smolvla => {
+            let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(super::SHARDS_DIR))?;
+            simulate(&workload, config, args.clients, run_dir)
         }
     }
 }
 
-fn simulate<W: Workload>(workload: &W, config: RunConfig, clients: usize) -> anyhow::Result<()> {
+fn simulate<W: Workload>(
+    workload: &W,
+    config: RunConfig,
+    clients: usize,
+    run_dir: RunDir,
+) -> anyhow::Result<()> {
     let trainers = (0..clients)
         .map(|shard| workload.trainer(shard))
         .collect::<Result<Vec<_>, _>>()
         .map_err(super::boxed)?;
-    let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
-    // Progress bars own the terminal: only warnings go to stderr, the full log to server.log.
-    super::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
     let metrics_path = run_dir.path().join(METRICS_FILE);
     let rounds = config.num_server_rounds;
-    let parts = super::server_parts(config, run_dir)?;
+    let parts = super::parts_of(workload, config, run_dir)?;
     super::runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0")
             .await
@@ -92,22 +105,38 @@ fn simulate<W: Workload>(workload: &W, config: RunConfig, clients: usize) -> any
                 spawn_client(url.clone(), shard, trainer, bar)
             })
             .collect();
+        // A simulated federation cannot finish without its clients: the first client to fail
+        // stops the run instead of leaving the server waiting for it.
+        let cancel = handle.cancel_token();
+        let clients: Vec<_> = tasks
+            .into_iter()
+            .enumerate()
+            .map(|(shard, done)| {
+                let cancel = cancel.clone();
+                tokio::spawn(async move {
+                    let result = done.await.unwrap_or_else(|_| Err(anyhow::anyhow!("panicked")));
+                    if result.is_err() {
+                        cancel.cancel();
+                    }
+                    result.with_context(|| format!("client {shard}"))
+                })
+            })
+            .collect();
         let status = handle.finish().await?;
         watcher.await.ok();
         round_bar.finish();
-        for (shard, task) in tasks.into_iter().enumerate() {
-            match tokio::time::timeout(Duration::from_secs(5), task).await {
+        let mut failures = Vec::new();
+        for client in clients {
+            match tokio::time::timeout(Duration::from_secs(5), client).await {
                 Ok(Ok(Ok(()))) => {}
-                Ok(Ok(Err(e))) => eprintln!("client {shard}: {e:#}"),
-                Ok(Err(_)) => eprintln!("client {shard} panicked"),
-                Err(_) => eprintln!("client {shard} did not finish"),
+                Ok(Ok(Err(e))) => failures.push(format!("{e:#}")),
+                Ok(Err(e)) => failures.push(e.to_string()),
+                Err(_) => failures.push("a client did not finish".into()),
             }
         }
-        println!(
-            "{} rounds done; metrics in {}",
-            status.completed_rounds,
-            metrics_path.display()
-        );
+        anyhow::ensure!(failures.is_empty(), "the simulation stopped: {}", failures.join("; "));
+        println!("{} rounds done; metrics in {}", status.completed_rounds, metrics_path.display());
+        print_heldout_losses(&metrics_path)?;
         anyhow::Ok(())
     })
 }
@@ -172,4 +201,18 @@ fn spawn_client<L: LocalTrainer + Send + 'static>(
         done_tx.send(result).ok();
     });
     done
+}
+
+/// Prints the global held-out loss of the first and the last evaluated round, the run's headline.
+fn print_heldout_losses(metrics: &Path) -> anyhow::Result<()> {
+    let text = std::fs::read_to_string(metrics).with_context(|| format!("reading {}", metrics.display()))?;
+    let losses: Vec<(u64, f64)> = text
+        .lines()
+        .filter_map(|line| serde_json::from_str::<serde_json::Value>(line).ok())
+        .filter_map(|m| Some((m["round"].as_u64()?, m["global"]["heldout_loss"].as_f64()?)))
+        .collect();
+    if let (Some((r0, first)), Some((rn, last))) = (losses.first(), losses.last()) {
+        println!("global held-out loss: round {r0} {first:.4} -> round {rn} {last:.4}");
+    }
+    Ok(())
 }

@@ -71,9 +71,12 @@ pub struct Partition {
     pub server_held_out: Vec<usize>,
 }
 
-/// `fraction` of `n` items, rounded to the nearest whole item (never more than `n`).
+/// `fraction` of `n` items, rounded to the nearest whole item. A positive fraction of two or more
+/// items holds out at least one and keeps at least one: a held-out set must exist to be evaluated on,
+/// and a client must have something to train on.
 pub fn held_out_count(n: usize, fraction: f64) -> usize {
-    ((n as f64 * fraction).round() as usize).min(n)
+    let k = ((n as f64 * fraction).round() as usize).min(n);
+    if fraction > 0.0 && n >= 2 { k.clamp(1, n - 1) } else { k }
 }
 
 /// The (episode, task) list of a dataset, an episode's task being its first listed task.

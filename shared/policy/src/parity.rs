@@ -147,7 +147,8 @@ pub fn run(dir: &Path, device: &Device, tolerance: f64) -> Result<ParityReport, 
                 note: format!("shape mismatch: ours {:?}", act.shape),
             },
             Some(act) => {
-                let diff = exp.values.iter().zip(&act.values).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+                // NaN anywhere is a failure, not a difference `f64::max` would skip.
+                let diff = exp.values.iter().zip(&act.values).map(|(a, b)| (a - b).abs()).fold(0.0, |m, d| if d.is_nan() { f64::INFINITY } else { m.max(d) });
                 ParityRow { name: name.clone(), shape: exp.shape.clone(), max_abs_diff: Some(diff), note: String::new() }
             }
         };

@@ -1,0 +1,220 @@
+//! SmolVLA on SO-100 data as the federation's workload: the dataset (the embedded default is
+//! recorded by the sim's scripted expert on first use), its partition into client shards and the
+//! server's held-out shard, the initial checkpoint, and a LeRobot policy directory per round.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use burn::tensor::Device;
+use fedvla_data::{ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard, episode_tasks, partition};
+use fedvla_federation::{BoxError, Evaluator, NamedTensors};
+use fedvla_learner::tensors::{to_named, to_weights};
+use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
+use fedvla_policy::config::Feature;
+use fedvla_policy::policy_dir::{Backbone, export};
+use fedvla_policy::tokenizer::PAD_ID;
+use fedvla_policy::weights::init_random;
+use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, WeightMap, WordTokenizer};
+
+use crate::config::{Partitioning, RunConfig};
+use crate::datagen::{GenDataOptions, generate_dataset};
+use crate::run_dir::ModelExporter;
+use crate::workload::Workload;
+
+/// Share of each client's episodes it never trains on, and of all episodes only the server sees.
+const CLIENT_HELD_OUT: f64 = 0.2;
+const SERVER_HELD_OUT: f64 = 0.15;
+
+/// Everything the server and the clients of one SmolVLA run share.
+pub struct SmolVlaWorkload {
+    cfg: SmolVlaConfig,
+    weights: WeightMap,
+    stats: NormStats,
+    tokenizer: WordTokenizer,
+    client_shards: Vec<PathBuf>,
+    server_shard: PathBuf,
+}
+
+/// The dataset a run trains on: the configured path, recorded by the sim first when it is the
+/// embedded default and not there yet.
+fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathBuf> {
+    let root = PathBuf::from(&config.dataset);
+    if root.join("meta/info.json").exists() {
+        return Ok(root);
+    }
+    anyhow::ensure!(
+        config.dataset == crate::config::EMBEDDED_DATASET,
+        "dataset {} not found (no meta/info.json); point `dataset` at a LeRobot dataset or use the embedded default {:?}",
+        root.display(),
+        crate::config::EMBEDDED_DATASET
+    );
+    eprintln!("recording the embedded SO-100 dataset ({} expert episodes) into {}", config.dataset_episodes, root.display());
+    let options = GenDataOptions { episodes: config.dataset_episodes, seed: config.seed, image_size: image_size as u32 };
+    generate_dataset(&root, &options, |_| {})?;
+    Ok(root)
+}
+
+fn partition_strategy(p: Partitioning) -> PartitionStrategy {
+    match p {
+        Partitioning::Iid => PartitionStrategy::EpisodeModulo,
+        Partitioning::ByEpisode => PartitionStrategy::Contiguous,
+    }
+}
+
+/// The policy configuration of `model-size`, with the dataset's cameras (in its order) as inputs.
+fn policy_config(config: &RunConfig, dataset: &LeRobotDataset) -> anyhow::Result<SmolVlaConfig> {
+    let mut cfg = SmolVlaConfig::preset(&config.model_size)?;
+    let features = &dataset.info().features;
+    let cameras: Vec<Feature> = dataset
+        .camera_keys()
+        .into_iter()
+        .map(|key| {
+            let shape = features.get(&key).map(|f| f.shape.clone()).unwrap_or_default();
+            // LeRobot declares camera features channels-first; datasets store [H, W, C].
+            let (h, w) = (shape.first().copied().unwrap_or(0), shape.get(1).copied().unwrap_or(0));
+            Feature { name: key, kind: "VISUAL".into(), shape: vec![3, h, w] }
+        })
+        .collect();
+    cfg.input_features.retain(|f| f.kind != "VISUAL");
+    cfg.input_features.extend(cameras);
+    cfg.validate()?;
+    Ok(cfg)
+}
+
+fn norm_stats(dataset: &LeRobotDataset) -> anyhow::Result<NormStats> {
+    let stats = dataset.stats().context("the dataset has no meta/stats.json")?;
+    let mut out = NormStats::default();
+    for feature in ["observation.state", "action"] {
+        let s = stats.get(feature).with_context(|| format!("meta/stats.json has no {feature}"))?;
+        out.features.insert(
+            feature.into(),
+            FeatureStats { mean: s.mean.iter().map(|&v| v as f32).collect(), std: s.std.iter().map(|&v| v as f32).collect() },
+        );
+    }
+    Ok(out)
+}
+
+impl SmolVlaWorkload {
+    /// Opens (or records) the dataset, partitions it among `config.num_clients` clients and writes
+    /// their shards and the server's held-out shard into `shard_dir`.
+    pub fn prepare(config: &RunConfig, shard_dir: &Path) -> anyhow::Result<Self> {
+        let preset = SmolVlaConfig::preset(&config.model_size)?;
+        let root = ensure_dataset(config, preset.resize_imgs_with_padding.1)?;
+        let dataset = LeRobotDataset::open(&root).with_context(|| format!("opening dataset {}", root.display()))?;
+        let cfg = policy_config(config, &dataset)?;
+        let tokenizer = WordTokenizer::from_texts(dataset.tasks().iter().map(String::as_str));
+        anyhow::ensure!(
+            tokenizer.vocab_size() <= cfg.vlm.text_config.vocab_size,
+            "the dataset's task strings need {} tokens, more than the {} of model size {}",
+            tokenizer.vocab_size(),
+            cfg.vlm.text_config.vocab_size,
+            config.model_size
+        );
+        let partition_config = PartitionConfig {
+            num_clients: config.num_clients,
+            strategy: partition_strategy(config.partitioning),
+            client_held_out_fraction: CLIENT_HELD_OUT,
+            server_held_out_fraction: SERVER_HELD_OUT,
+            seed: config.seed,
+        };
+        let parts = partition(&episode_tasks(&dataset), &partition_config)?;
+        std::fs::create_dir_all(shard_dir).with_context(|| format!("creating {}", shard_dir.display()))?;
+        let (w, h) = cfg.resize_imgs_with_padding;
+        let spec = ShardSpec {
+            image_width: w as u32,
+            image_height: h as u32,
+            tokenizer_max_length: cfg.tokenizer_max_length,
+            pad_token_id: PAD_ID as u32,
+        };
+        let tokenize = |task: &str| -> Vec<u32> {
+            let (ids, _, _) = tokenizer.encode_batch(&[task], cfg.tokenizer_max_length, false);
+            ids.into_iter().map(|i| i as u32).collect()
+        };
+        let client_shards = (0..config.num_clients)
+            .map(|k| {
+                let path = shard_dir.join(format!("client_{k}.safetensors"));
+                build_shard(&dataset, &parts, k, &spec, Some(&tokenize), &path).with_context(|| format!("building shard {k}"))?;
+                Ok(path)
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        // The server's held-out episodes, packed like a client's held-out split.
+        let server_parts = Partition {
+            clients: vec![ClientSplit { train: Vec::new(), held_out: parts.server_held_out.clone() }],
+            ..parts.clone()
+        };
+        let server_shard = shard_dir.join("server_heldout.safetensors");
+        build_shard(&dataset, &server_parts, 0, &spec, Some(&tokenize), &server_shard).context("building the server's held-out shard")?;
+        let weights = match &config.init_policy {
+            path if path.is_empty() => init_random(&cfg.param_specs(), config.seed),
+            path => {
+                let policy = PolicyDir::load(Path::new(path))?;
+                anyhow::ensure!(
+                    policy.cfg.param_specs() == cfg.param_specs(),
+                    "init-policy {path} does not have the tensors of model size {} with this dataset's cameras",
+                    config.model_size
+                );
+                policy.weights
+            }
+        };
+        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard })
+    }
+
+    fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
+        let shard = ClientShard::read(path)?;
+        Ok(ShardExamples::new(shard, &self.cfg)?)
+    }
+
+    pub fn policy_config(&self) -> &SmolVlaConfig {
+        &self.cfg
+    }
+}
+
+/// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
+struct LeRobotExport {
+    cfg: SmolVlaConfig,
+    frozen: WeightMap,
+    stats: NormStats,
+    tokenizer: WordTokenizer,
+}
+
+impl ModelExporter for LeRobotExport {
+    fn export(&self, _round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError> {
+        let mut weights = self.frozen.clone();
+        weights.extend(to_weights(global));
+        export(&dir.join("policy"), &self.cfg, &weights, &self.stats, Backbone::Generated(&self.tokenizer))?;
+        Ok(())
+    }
+}
+
+impl Workload for SmolVlaWorkload {
+    type Trainer = SmolVlaTrainer;
+
+    fn initial_model(&self) -> Result<NamedTensors, BoxError> {
+        let trainable: WeightMap = self
+            .cfg
+            .param_specs()
+            .into_iter()
+            .filter(|s| s.trainable)
+            .map(|s| (s.name.clone(), self.weights[&s.name].clone()))
+            .collect();
+        Ok(to_named(&trainable)?)
+    }
+
+    fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError> {
+        let examples = self.examples(&self.server_shard)?;
+        Ok(Box::new(HeldOutEvaluator::new(&self.cfg, &self.weights, examples, &Device::flex())))
+    }
+
+    fn exporters(&self) -> Vec<Box<dyn ModelExporter>> {
+        let trainable: std::collections::BTreeSet<String> =
+            self.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
+        let frozen = self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect();
+        vec![Box::new(LeRobotExport { cfg: self.cfg.clone(), frozen, stats: self.stats.clone(), tokenizer: self.tokenizer.clone() })]
+    }
+
+    fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError> {
+        let path = self.client_shards.get(shard).ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
+        let examples = self.examples(path)?;
+        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, &Device::flex().autodiff(), "cpu-flex")
+    }
+}

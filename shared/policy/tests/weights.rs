@@ -120,3 +120,38 @@ fn torch_compile_prefix_is_stripped_and_normalizer_buffers_ignored() {
     std::fs::remove_file(&path).unwrap();
     check_keys(&cfg.param_specs(), &loaded, "compiled").unwrap();
 }
+
+#[test]
+fn full_size_500_key_checkpoint_in_mixed_bf16_f32_loads() {
+    // The real checkpoint's contract at full size (~0.9 GB on disk): frozen tensors in BF16, the
+    // trainable ones in F32, every value converted on load.
+    let specs = SmolVlaConfig::base().param_specs();
+    let raw: Vec<(String, Dtype, Vec<u8>, Vec<usize>)> = specs
+        .iter()
+        .map(|s| {
+            let (dtype, bytes) = if s.trainable {
+                (Dtype::F32, 0.5f32.to_le_bytes().repeat(s.numel()))
+            } else {
+                (Dtype::BF16, half::bf16::from_f32(-0.25).to_le_bytes().repeat(s.numel()))
+            };
+            (s.name.clone(), dtype, bytes, s.shape.clone())
+        })
+        .collect();
+    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = raw
+        .iter()
+        .map(|(k, d, b, s)| (k.clone(), safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap()))
+        .collect();
+    let path = std::env::temp_dir().join(format!("fedvla-full-{}.safetensors", std::process::id()));
+    safetensors::serialize_to_file(views, None, &path).unwrap();
+    drop(raw);
+    let loaded = read_safetensors(&path);
+    std::fs::remove_file(&path).unwrap();
+    let loaded = loaded.unwrap();
+    check_keys(&specs, &loaded, "full").unwrap();
+    assert_eq!(loaded.len(), 500);
+    for s in &specs {
+        let t = &loaded[&s.name];
+        let expected = if s.trainable { 0.5 } else { -0.25 };
+        assert!(t.data.first() == Some(&expected) && t.data.last() == Some(&expected), "{}", s.name);
+    }
+}

@@ -1,5 +1,7 @@
-//! HTTP routes: `GET /ws` (the federation WebSocket) and `GET /model/{version}` (global trainable tensors).
+//! HTTP routes: `GET /ws` (the federation WebSocket), `GET /model/{version}` (global trainable tensors)
+//! and `GET /shard/{index}` with `GET /shard/{index}/manifest` (a client's data shard, its size and checksum).
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
 
@@ -37,12 +39,16 @@ pub struct AppState {
     /// Token clients must present on join; `None` means no authentication.
     pub auth_token: Option<Arc<str>>,
     pub next_client_id: Arc<AtomicU64>,
+    /// Client shard files by shard index (each with its `.manifest.json` sidecar).
+    pub shards: Arc<Vec<PathBuf>>,
 }
 
 pub fn app(state: AppState) -> Router {
     Router::new()
         .route("/ws", get(ws_upgrade))
         .route("/model/{version}", get(get_model))
+        .route("/shard/{index}", get(get_shard))
+        .route("/shard/{index}/manifest", get(get_shard_manifest))
         .with_state(state)
 }
 
@@ -74,4 +80,21 @@ async fn get_model(
         model.safetensors.clone(),
     )
         .into_response())
+}
+
+fn shard_path(state: &AppState, index: usize) -> Result<&PathBuf, ServerError> {
+    state.shards.get(index).ok_or(ServerError::NoShard { index, count: state.shards.len() })
+}
+
+/// The shard file as stored; clients check it against the manifest's size and SHA-256.
+async fn get_shard(Path(index): Path<usize>, State(state): State<AppState>) -> Result<Response, ServerError> {
+    let path = shard_path(&state, index)?;
+    let bytes = tokio::fs::read(path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
+}
+
+async fn get_shard_manifest(Path(index): Path<usize>, State(state): State<AppState>) -> Result<Response, ServerError> {
+    let path = fedvla_data::shard::sidecar_path(shard_path(&state, index)?);
+    let json = tokio::fs::read(&path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
+    Ok(([(CONTENT_TYPE, "application/json")], json).into_response())
 }

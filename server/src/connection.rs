@@ -446,6 +446,7 @@ mod tests {
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
                 next_client_id: Arc::new(AtomicU64::new(7)),
+                shards: Arc::new(Vec::new()),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
                 tx.send(msg).ok();

@@ -2,6 +2,8 @@
 
 use std::time::Instant;
 
+use fedvla_data::shard::verify_shard_bytes;
+use fedvla_data::ShardFileManifest;
 use fedvla_federation::{BoxError, ClientTransport};
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Empty};
@@ -19,6 +21,35 @@ pub struct NativeTransport {
 }
 
 impl NativeTransport {
+    /// `GET path` on the server, over a fresh HTTP/1 connection.
+    async fn http_get(&self, path: &str) -> Result<Vec<u8>, BoxError> {
+        let stream = TcpStream::connect(&self.authority).await?;
+        let (mut sender, conn) =
+            hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
+        let conn = tokio::spawn(conn);
+        let request = hyper::Request::get(path)
+            .header(hyper::header::HOST, &self.authority)
+            .body(Empty::<Bytes>::new())?;
+        let response = sender.send_request(request).await?;
+        let status = response.status();
+        let body = response.into_body().collect().await?.to_bytes();
+        drop(sender);
+        conn.await??;
+        if !status.is_success() {
+            return Err(format!("GET {path}: {status}: {}", String::from_utf8_lossy(&body)).into());
+        }
+        Ok(body.to_vec())
+    }
+
+    /// Downloads shard `index` and checks it against its manifest (size and SHA-256) before use.
+    pub async fn fetch_shard(&self, index: usize) -> Result<(ShardFileManifest, Vec<u8>), BoxError> {
+        let manifest: ShardFileManifest =
+            serde_json::from_slice(&self.http_get(&format!("/shard/{index}/manifest")).await?)?;
+        let bytes = self.http_get(&format!("/shard/{index}")).await?;
+        verify_shard_bytes(std::path::Path::new(&manifest.file), &bytes, &manifest)?;
+        Ok((manifest, bytes))
+    }
+
     /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored).
     pub async fn connect(server: &str) -> Result<Self, BoxError> {
         let uri: Uri = if server.contains("://") {
@@ -75,26 +106,7 @@ impl ClientTransport for NativeTransport {
     }
 
     async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
-        let stream = TcpStream::connect(&self.authority).await?;
-        let (mut sender, conn) =
-            hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
-        let conn = tokio::spawn(conn);
-        let request = hyper::Request::get(format!("/model/{version}"))
-            .header(hyper::header::HOST, &self.authority)
-            .body(Empty::<Bytes>::new())?;
-        let response = sender.send_request(request).await?;
-        let status = response.status();
-        let body = response.into_body().collect().await?.to_bytes();
-        drop(sender);
-        conn.await??;
-        if !status.is_success() {
-            return Err(format!(
-                "GET /model/{version}: {status}: {}",
-                String::from_utf8_lossy(&body)
-            )
-            .into());
-        }
-        Ok(body.to_vec())
+        self.http_get(&format!("/model/{version}")).await
     }
 
     fn now_seconds(&self) -> f64 {

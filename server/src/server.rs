@@ -1,6 +1,7 @@
 //! Starting and stopping a server: the HTTP/WebSocket listener plus the coordinator task.
 
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
 
@@ -30,6 +31,8 @@ pub struct ServerParts {
     pub evaluator: Box<dyn Evaluator + Send>,
     /// Extra exporters run after `trainable.safetensors` is written (e.g. the LeRobot policy directory).
     pub exporters: Vec<Box<dyn ModelExporter>>,
+    /// Client shard files served at `GET /shard/{index}` (empty when the workload has none).
+    pub shards: Vec<PathBuf>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -60,6 +63,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         strategy,
         evaluator,
         exporters,
+        shards,
     } = parts;
     let spec = Arc::new(initial.spec());
     let completed = run_dir.last_completed_round()?;
@@ -92,6 +96,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         limits,
         auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
         next_client_id: Arc::new(AtomicU64::new(1)),
+        shards: Arc::new(shards),
     };
     let mut all_exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
     all_exporters.extend(exporters);

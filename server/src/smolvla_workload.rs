@@ -212,6 +212,10 @@ impl Workload for SmolVlaWorkload {
         vec![Box::new(LeRobotExport { cfg: self.cfg.clone(), frozen, stats: self.stats.clone(), tokenizer: self.tokenizer.clone() })]
     }
 
+    fn shards(&self) -> Vec<PathBuf> {
+        self.client_shards.clone()
+    }
+
     fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError> {
         let path = self.client_shards.get(shard).ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
         let examples = self.examples(path)?;

@@ -17,6 +17,11 @@ pub trait Workload {
     /// Written into `global_model/round_N/` after `trainable.safetensors` (e.g. a LeRobot policy directory).
     fn exporters(&self) -> Vec<Box<dyn ModelExporter>>;
 
+    /// Shard files the server hands out over HTTP, by shard index.
+    fn shards(&self) -> Vec<std::path::PathBuf> {
+        Vec::new()
+    }
+
     /// The trainer of the client holding shard `shard`.
     fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError>;
 }

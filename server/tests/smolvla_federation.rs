@@ -76,6 +76,7 @@ async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
         initial: initial.clone(),
         evaluator: workload.evaluator().unwrap(),
         exporters: workload.exporters(),
+        shards: workload.shards(),
         strategy: Box::new(FedAvg),
         config: cfg.clone(),
         run_dir: run_dir.clone(),
@@ -173,4 +174,35 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
     assert_eq!(model(&first), model(&again), "same seed, same global model");
     let other = run(&data, &tmp.path().join("c"), 4).await;
     assert_ne!(model(&first), model(&other), "another seed, another global model");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn client_shards_download_over_http_with_size_and_checksum() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = dataset(tmp.path());
+    let cfg = config(&data, &tmp.path().join("out"), 0);
+    let run_dir = RunDir::create(&tmp.path().join("out"), &cfg).unwrap();
+    let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
+    let parts = ServerParts {
+        initial: workload.initial_model().unwrap(),
+        evaluator: workload.evaluator().unwrap(),
+        exporters: Vec::new(),
+        shards: workload.shards(),
+        strategy: Box::new(FedAvg),
+        config: cfg,
+        run_dir,
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let handle = server::start(parts, listener).unwrap();
+    let transport = NativeTransport::connect(&format!("ws://{}", handle.addr())).await.unwrap();
+    for index in 0..3 {
+        let (manifest, bytes) = transport.fetch_shard(index).await.unwrap();
+        assert_eq!(bytes.len() as u64, manifest.file_bytes);
+        assert_eq!(bytes, std::fs::read(&workload.shards()[index]).unwrap());
+        let shard = fedvla_data::ClientShard::from_bytes(Path::new(&manifest.file), &bytes).unwrap();
+        assert_eq!(shard.manifest.client_index, index);
+    }
+    let missing = transport.fetch_shard(3).await.unwrap_err().to_string();
+    assert!(missing.contains("404") && missing.contains("no shard 3"), "{missing}");
+    handle.kill();
 }

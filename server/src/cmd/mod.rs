@@ -101,6 +101,7 @@ fn parts_of<W: Workload>(
         initial: workload.initial_model().map_err(boxed)?,
         evaluator: workload.evaluator().map_err(boxed)?,
         exporters: workload.exporters(),
+        shards: workload.shards(),
         strategy,
         config,
         run_dir,

@@ -42,6 +42,7 @@ pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
         strategy: Box::new(FedAvg),
         evaluator: Box::new(LinRegEvaluator::default()),
         exporters: Vec::new(),
+        shards: Vec::new(),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     server::start(parts, listener).unwrap()

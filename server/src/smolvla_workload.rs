@@ -33,6 +33,7 @@ pub struct SmolVlaWorkload {
     tokenizer: WordTokenizer,
     client_shards: Vec<PathBuf>,
     server_shard: PathBuf,
+    seed: u64,
 }
 
 /// The dataset a run trains on: the configured path, recorded by the sim first when it is the
@@ -156,7 +157,7 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
-        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard })
+        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard, seed: config.seed })
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -219,6 +220,8 @@ impl Workload for SmolVlaWorkload {
     fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError> {
         let path = self.client_shards.get(shard).ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
         let examples = self.examples(path)?;
-        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, &Device::flex().autodiff(), "cpu-flex")
+        // Each client draws its own noise and times, reproducibly.
+        let seed = self.seed ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, seed, &Device::flex().autodiff(), "cpu-flex")
     }
 }

@@ -22,10 +22,10 @@ pub struct SmolVlaTrainer {
 }
 
 impl SmolVlaTrainer {
-    /// `weights` is the full initial checkpoint (frozen + trainable); `backend` names the device for
-    /// the server's client table.
-    pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, examples: ShardExamples, device: &Device, backend: &str) -> Result<Self, BoxError> {
-        let trainer = Trainer::new(cfg, weights, device, 0)?;
+    /// `weights` is the full initial checkpoint (frozen + trainable); `seed` drives this client's
+    /// flow-matching noise and times; `backend` names the device for the server's client table.
+    pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, examples: ShardExamples, seed: u64, device: &Device, backend: &str) -> Result<Self, BoxError> {
+        let trainer = Trainer::new(cfg, weights, device, seed)?;
         let held_out = HeldOut::new(&examples.held_out_rows);
         Ok(Self { trainer, examples, held_out, backend: backend.into() })
     }

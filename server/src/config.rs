@@ -77,6 +77,7 @@ pub struct RunConfig {
     pub model_size: String,
     pub init_policy: String,
     pub eval_every: u64,
+    pub rollout_episodes: usize,
     pub round_deadline_ms: u64,
     pub listen: String,
     pub max_frame_bytes: usize,

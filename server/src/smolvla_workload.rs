@@ -9,16 +9,18 @@ use burn::tensor::Device;
 use fedvla_data::{ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard, episode_tasks, partition};
 use fedvla_federation::{BoxError, Evaluator, NamedTensors};
 use fedvla_learner::tensors::{to_named, to_weights};
+use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::init_random;
-use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, WeightMap, WordTokenizer};
+use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, Tokenizer, WeightMap, WordTokenizer};
 
 use crate::config::{Partitioning, RunConfig};
 use crate::datagen::{GenDataOptions, generate_dataset};
 use crate::run_dir::ModelExporter;
+use crate::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -34,6 +36,7 @@ pub struct SmolVlaWorkload {
     client_shards: Vec<PathBuf>,
     server_shard: PathBuf,
     seed: u64,
+    rollout_episodes: usize,
 }
 
 /// The dataset a run trains on: the configured path, recorded by the sim first when it is the
@@ -157,7 +160,7 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
-        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard, seed: config.seed })
+        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard, seed: config.seed, rollout_episodes: config.rollout_episodes })
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -169,6 +172,33 @@ impl SmolVlaWorkload {
         &self.cfg
     }
 }
+
+/// Rolls each round's global model out in the sim (`global_model/round_N/rollouts/`: results.json
+/// with the success rate and one MP4 per episode), on the same seeds every round.
+struct SimRollouts {
+    cfg: SmolVlaConfig,
+    frozen: WeightMap,
+    stats: NormStats,
+    tokenizer: Tokenizer,
+    episodes: usize,
+}
+
+impl ModelExporter for SimRollouts {
+    fn export(&self, round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError> {
+        let mut weights = self.frozen.clone();
+        weights.extend(to_weights(global));
+        let policy = SimPolicy::new(&self.cfg, &weights, self.stats.clone(), &self.tokenizer, &Device::flex())?;
+        let source = format!("global model of round {round}");
+        let options = SimEvalOptions { episodes: self.episodes, video_size: Some(ROLLOUT_VIDEO_SIZE), ..SimEvalOptions::default() };
+        let summary = evaluate_in_sim(Agent::Policy { policy: &policy, source: &source }, &options, &dir.join("rollouts"), |_, _| {})
+            .map_err(|e| format!("{e:#}"))?;
+        tracing::info!(round, success_rate = summary.success_rate, mean_length = summary.mean_length, "global model rolled out in the sim");
+        Ok(())
+    }
+}
+
+/// Camera size in the rollout videos (two cameras side by side).
+const ROLLOUT_VIDEO_SIZE: u32 = 128;
 
 /// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
 struct LeRobotExport {
@@ -209,8 +239,23 @@ impl Workload for SmolVlaWorkload {
     fn exporters(&self) -> Vec<Box<dyn ModelExporter>> {
         let trainable: std::collections::BTreeSet<String> =
             self.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
-        let frozen = self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect();
-        vec![Box::new(LeRobotExport { cfg: self.cfg.clone(), frozen, stats: self.stats.clone(), tokenizer: self.tokenizer.clone() })]
+        let frozen: WeightMap = self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect();
+        let mut exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(LeRobotExport {
+            cfg: self.cfg.clone(),
+            frozen: frozen.clone(),
+            stats: self.stats.clone(),
+            tokenizer: self.tokenizer.clone(),
+        })];
+        if self.rollout_episodes > 0 {
+            exporters.push(Box::new(SimRollouts {
+                cfg: self.cfg.clone(),
+                frozen,
+                stats: self.stats.clone(),
+                tokenizer: Tokenizer::Word(self.tokenizer.clone()),
+                episodes: self.rollout_episodes,
+            }));
+        }
+        exporters
     }
 
     fn shards(&self) -> Vec<PathBuf> {

@@ -53,7 +53,7 @@ fn config(dataset: &Path, out: &Path, seed: u64) -> RunConfig {
     RunConfig::default()
         .with_overrides(&format!(
             "workload=smolvla model-size=tiny dataset={} output-dir={} num-clients=3 min-clients=3 min-fit=3 \
-             num-server-rounds=2 local-steps=3 batch-size=4 lr=0.001 seed={seed} max-frame-bytes=65536 round-deadline-ms=120000",
+             num-server-rounds=2 local-steps=3 batch-size=4 lr=0.001 seed={seed} max-frame-bytes=65536 round-deadline-ms=120000 rollout-episodes=1",
             dataset.display(),
             out.display()
         ))
@@ -167,6 +167,11 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
     // Every round's global model is also a LeRobot policy directory.
     let policy = PolicyDir::load(&first.dir.join("global_model/round_2/policy")).unwrap();
     assert!(policy.stats.is_some() && policy.vlm_dir.is_some());
+    // ... and is rolled out in the sim, filmed.
+    let rollouts = first.dir.join("global_model/round_2/rollouts");
+    let results: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(rollouts.join("results.json")).unwrap()).unwrap();
+    assert_eq!(results["episodes"].as_array().unwrap().len(), 1);
+    assert!(std::fs::metadata(rollouts.join("episode_0.mp4")).unwrap().len() > 1000);
 
     // The same seed gives a byte-identical global model; another seed does not.
     let model = |run: &Run| std::fs::read(run.dir.join("global_model/round_2").join(TRAINABLE_FILE)).unwrap();

@@ -3,6 +3,7 @@
 //! task's token ids.
 
 use fedvla_data::ClientShard;
+use fedvla_policy::batch::rgb_hwc_to_chw;
 use fedvla_policy::weights::HostTensor;
 use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig};
 
@@ -69,12 +70,7 @@ impl ShardExamples {
                 let mut chw = vec![0.0f32; b * 3 * h * w];
                 for (n, &row) in rows.iter().enumerate() {
                     let hwc = self.shard.image(cam, row).ok_or_else(|| PolicyError::Input(format!("shard row {row} has no {cam} image")))?;
-                    let plane = &mut chw[n * 3 * h * w..(n + 1) * 3 * h * w];
-                    for (i, px) in hwc.chunks_exact(3).enumerate() {
-                        for c in 0..3 {
-                            plane[c * h * w + i] = px[c] as f32 / 255.0;
-                        }
-                    }
+                    rgb_hwc_to_chw(hwc, &mut chw[n * 3 * h * w..(n + 1) * 3 * h * w]);
                 }
                 Ok(HostTensor::new(vec![b, 3, h, w], chw))
             })

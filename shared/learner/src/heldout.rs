@@ -3,11 +3,11 @@
 //! MSE/L1 of sampled action chunks against the recorded ones, in robot units.
 
 use fedvla_policy::batch::{Prepared, prepare_actions};
-use fedvla_policy::smolvla::gaussian_noise;
+use fedvla_policy::smolvla::{gaussian_noise, sample_times};
 use fedvla_policy::weights::HostTensor;
 use fedvla_policy::{PolicyError, SmolVla};
 use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 
 use crate::examples::ShardExamples;
 
@@ -51,7 +51,7 @@ pub fn heldout_metrics(model: &SmolVla, examples: &ShardExamples, held_out: &Hel
         let obs = Prepared::new(cfg, &batch, &device)?;
         let b = rows.len();
         let noise = gaussian_noise(&mut rng, [b, cfg.chunk_size, cfg.max_action_dim], &device);
-        let time: Vec<f32> = (0..b).map(|_| rng.random::<f64>().powf(1.0 / 1.5) as f32 * 0.999 + 0.001).collect();
+        let time = sample_times(&mut rng, b);
         let actions = batch.actions.as_ref().expect("shard batches carry actions");
         let out = model.forward_loss(&obs, prepare_actions(cfg, actions, &device), noise, &time, batch.action_is_pad.as_deref(), None);
         loss_sum += out.loss.into_scalar::<f64>() * b as f64;

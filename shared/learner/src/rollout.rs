@@ -3,7 +3,7 @@
 //! (LeRobot's `select_action` queue), until the task succeeds or the frame budget runs out.
 
 use burn::tensor::Device;
-use fedvla_policy::batch::Prepared;
+use fedvla_policy::batch::{Prepared, rgb_hwc_to_chw};
 use fedvla_policy::smolvla::gaussian_noise;
 use fedvla_policy::weights::{HostTensor, ParamStore, WeightMap};
 use fedvla_policy::{Batch, NormStats, PolicyError, SmolVla, SmolVlaConfig, Tokenizer};
@@ -55,13 +55,8 @@ impl SimPolicy {
             .cameras
             .iter()
             .map(|&(cam, h, w)| {
-                let rgb = render(scene, cam, w, h);
                 let mut chw = vec![0.0f32; 3 * h * w];
-                for (i, px) in rgb.chunks_exact(3).enumerate() {
-                    for c in 0..3 {
-                        chw[c * h * w + i] = px[c] as f32 / 255.0;
-                    }
-                }
+                rgb_hwc_to_chw(&render(scene, cam, w, h), &mut chw);
                 HostTensor::new(vec![1, 3, h, w], chw)
             })
             .collect();

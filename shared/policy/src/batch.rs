@@ -92,6 +92,17 @@ pub fn prepare_image(images: &HostTensor, target_w: usize, target_h: usize) -> H
     HostTensor::new(vec![b, c, target_h, target_w], out)
 }
 
+/// An RGB frame as robots and renderers store it (u8, `[H, W, 3]`) into the policy's `[3, H, W]`
+/// floats in [0, 1], written to `out` (length `3·H·W`).
+pub fn rgb_hwc_to_chw(rgb: &[u8], out: &mut [f32]) {
+    let plane = out.len() / 3;
+    for (i, px) in rgb.chunks_exact(3).enumerate() {
+        for c in 0..3 {
+            out[c * plane + i] = px[c] as f32 / 255.0;
+        }
+    }
+}
+
 /// Zero-pads the last dimension of a row-major tensor from `dim` to `max_dim`.
 pub fn pad_last_dim(t: &HostTensor, max_dim: usize) -> HostTensor {
     let dim = *t.shape.last().expect("non-scalar");

@@ -226,6 +226,11 @@ impl SmolVla {
     }
 }
 
+/// Flow-matching times `t = 0.999·s + 0.001` with `s ~ Beta(1.5, 1)`, drawn as `U^(1/1.5)`.
+pub fn sample_times(rng: &mut impl rand::Rng, batch: usize) -> Vec<f32> {
+    (0..batch).map(|_| rng.random::<f64>().powf(1.0 / 1.5) as f32 * 0.999 + 0.001).collect()
+}
+
 /// Standard-normal noise `[B, T, D]` from a seeded generator (host-side, so every backend draws
 /// the same numbers).
 pub fn gaussian_noise(rng: &mut impl rand::Rng, shape: [usize; 3], device: &Device) -> Tensor<3> {

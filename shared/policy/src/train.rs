@@ -7,12 +7,12 @@ use std::collections::BTreeMap;
 
 use burn::tensor::{Device, Tensor};
 use rand::rngs::StdRng;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 
 use crate::batch::{Batch, Prepared, prepare_actions};
 use crate::config::SmolVlaConfig;
 use crate::error::PolicyError;
-use crate::smolvla::{FlowMatchingOutput, SmolVla, gaussian_noise};
+use crate::smolvla::{FlowMatchingOutput, SmolVla, gaussian_noise, sample_times};
 use crate::weights::{HostTensor, ParamStore, WeightMap, check_keys};
 
 /// AdamW hyper-parameters (LeRobot's SmolVLA preset by default).
@@ -161,8 +161,7 @@ impl Trainer {
     pub fn sample_noise_and_time(&mut self, batch: usize) -> (Tensor<3>, Vec<f32>) {
         let cfg = &self.model.cfg;
         let noise = gaussian_noise(&mut self.rng, [batch, cfg.chunk_size, cfg.max_action_dim], &self.device);
-        // Beta(α, 1) is U^(1/α).
-        let time = (0..batch).map(|_| self.rng.random::<f64>().powf(1.0 / 1.5) as f32 * 0.999 + 0.001).collect();
+        let time = sample_times(&mut self.rng, batch);
         (noise, time)
     }
 

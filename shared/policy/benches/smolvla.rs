@@ -6,25 +6,10 @@ use std::time::Instant;
 use burn::tensor::Device;
 use fedvla_policy::batch::Prepared;
 use fedvla_policy::smolvla::gaussian_noise;
-use fedvla_policy::weights::{HostTensor, ParamStore, init_random};
+use fedvla_policy::weights::{ParamStore, init_random};
 use fedvla_policy::{Batch, SmolVla, SmolVlaConfig, Trainer};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-
-fn batch(cfg: &SmolVlaConfig, b: usize, rng: &mut StdRng) -> Batch {
-    let (w, h) = cfg.resize_imgs_with_padding;
-    let mut uniform = |n: usize| (0..n).map(|_| rng.random::<f32>()).collect::<Vec<f32>>();
-    let t = cfg.chunk_size;
-    Batch {
-        images: cfg.camera_keys().iter().map(|_| HostTensor::new(vec![b, 3, h, w], uniform(b * 3 * h * w))).collect(),
-        lang_tokens: (0..b * 8).map(|i| 7 + (i % 6) as i64).collect(),
-        lang_mask: vec![true; b * 8],
-        lang_len: 8,
-        state: HostTensor::new(vec![b, 6], uniform(b * 6)),
-        actions: Some(HostTensor::new(vec![b, t, 6], uniform(b * t * 6))),
-        action_is_pad: None,
-    }
-}
 
 fn median(mut xs: Vec<f64>) -> f64 {
     xs.sort_by(f64::total_cmp);
@@ -40,7 +25,7 @@ fn main() {
         let params: usize = cfg.param_specs().iter().map(|s| s.numel()).sum();
         for b in [8, 32] {
             let mut trainer = Trainer::new(&cfg, &weights, &Device::flex().autodiff(), 0).unwrap();
-            let data = batch(&cfg, b, &mut rng);
+            let data = Batch::random(&cfg, b, rng.random());
             trainer.train_step(&data, 1e-4).unwrap();
             let times: Vec<f64> = (0..5)
                 .map(|_| {
@@ -55,7 +40,7 @@ fn main() {
         let device = Device::flex();
         let store = ParamStore::upload(weights.iter(), &device, false);
         let model = SmolVla::new(&cfg, &store, &store);
-        let data = batch(&cfg, 1, &mut rng);
+        let data = Batch::random(&cfg, 1, rng.random());
         let obs = Prepared::new(&cfg, &data, &device).unwrap();
         let times: Vec<f64> = (0..5)
             .map(|_| {

@@ -27,6 +27,26 @@ pub struct Batch {
 }
 
 impl Batch {
+    /// `b` samples of uniform random images, state and actions with a fixed 6-token task, for benchmarks and
+    /// tests (and the browser's self-test): the shapes of `cfg`, nothing of a real dataset.
+    pub fn random(cfg: &SmolVlaConfig, b: usize, seed: u64) -> Self {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let (w, h) = cfg.resize_imgs_with_padding;
+        let mut uniform = |n: usize| (0..n).map(|_| rng.random::<f32>()).collect::<Vec<f32>>();
+        let (t, state_dim, action_dim) = (cfg.chunk_size, cfg.state_dim(), cfg.action_dim());
+        Self {
+            images: cfg.camera_keys().iter().map(|_| HostTensor::new(vec![b, 3, h, w], uniform(b * 3 * h * w))).collect(),
+            lang_tokens: (0..b * 6).map(|i| 7 + (i % 6) as i64).collect(),
+            lang_mask: vec![true; b * 6],
+            lang_len: 6,
+            state: HostTensor::new(vec![b, state_dim], uniform(b * state_dim)),
+            actions: Some(HostTensor::new(vec![b, t, action_dim], uniform(b * t * action_dim))),
+            // The last step of every chunk but the first is padding, so the mask path is exercised.
+            action_is_pad: Some((0..b * t).map(|i| i % t == t - 1 && i >= t).collect()),
+        }
+    }
+
     pub fn batch_size(&self) -> usize {
         self.state.shape[0]
     }

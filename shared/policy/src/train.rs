@@ -132,6 +132,16 @@ impl Trainer {
         ParamStore::from_flat(self.trainable.clone()).to_host()
     }
 
+    /// [`Trainer::trainable_weights`], read asynchronously (browsers).
+    pub async fn trainable_weights_async(&self) -> Result<WeightMap, PolicyError> {
+        ParamStore::from_flat(self.trainable.clone()).to_host_async().await
+    }
+
+    /// [`Trainer::frozen_weights`], read asynchronously (browsers).
+    pub async fn frozen_weights_async(&self) -> Result<WeightMap, PolicyError> {
+        self.frozen.to_host_async().await
+    }
+
     /// The frozen tensors on the host (they never change; exported with every checkpoint).
     pub fn frozen_weights(&self) -> WeightMap {
         self.frozen.to_host()
@@ -168,30 +178,53 @@ impl Trainer {
     /// One training step on `batch` with seeded noise and time, at learning rate `lr`.
     pub fn train_step(&mut self, batch: &Batch, lr: f64) -> Result<StepReport, PolicyError> {
         let (noise, time) = self.sample_noise_and_time(batch.batch_size());
-        self.train_step_with(batch, noise, &time, lr).map(|(report, _)| report)
+        let (loss, grads) = self.backward(batch, noise, &time)?;
+        let norm_sq = squared_norm(&grads).map_or(0.0, |n| n.into_scalar::<f64>());
+        self.finish_step(loss.into_scalar::<f32>(), norm_sq, grads, lr)
+    }
+
+    /// [`Trainer::train_step`] with its two reads (loss and gradient norm) awaited: a browser's WebGPU device
+    /// cannot read synchronously.
+    pub async fn train_step_async(&mut self, batch: &Batch, lr: f64) -> Result<StepReport, PolicyError> {
+        let (noise, time) = self.sample_noise_and_time(batch.batch_size());
+        let (loss, grads) = self.backward(batch, noise, &time)?;
+        let norm_sq = match squared_norm(&grads) {
+            Some(n) => n.into_scalar_async::<f64>().await.map_err(read_error)?,
+            None => 0.0,
+        };
+        let loss = loss.into_scalar_async::<f32>().await.map_err(read_error)?;
+        self.finish_step(loss, norm_sq, grads, lr)
     }
 
     /// One training step with given noise and time; also returns the gradients before clipping.
     pub fn train_step_with(&mut self, batch: &Batch, noise: Tensor<3>, time: &[f32], lr: f64) -> Result<(StepReport, WeightMap), PolicyError> {
-        let out = self.forward(batch, noise, time)?;
-        let loss = out.loss.clone().into_scalar::<f32>();
-        if !loss.is_finite() {
-            return Err(PolicyError::Input(format!("training loss is {loss}; refusing to apply the update")));
-        }
-        let grads = out.loss.backward();
-        let grads: BTreeMap<String, Tensor<1>> = self
-            .trainable
-            .iter()
-            .filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g)))
-            .collect();
+        let (loss, grads) = self.backward(batch, noise, time)?;
         let raw_grads = grads
             .iter()
             .map(|(k, g)| (k.clone(), HostTensor::new(self.trainable[k].1.clone(), g.to_data().convert::<f32>().try_into_vec::<f32>().expect("f32"))))
             .collect();
-        let grad_norm = grads.values().map(|g| g.clone().square().sum().into_scalar::<f64>()).sum::<f64>().sqrt();
+        let norm_sq = squared_norm(&grads).map_or(0.0, |n| n.into_scalar::<f64>());
+        let report = self.finish_step(loss.into_scalar::<f32>(), norm_sq, grads, lr)?;
+        Ok((report, raw_grads))
+    }
+
+    /// The loss and the gradient of every trainable tensor that received one.
+    fn backward(&mut self, batch: &Batch, noise: Tensor<3>, time: &[f32]) -> Result<(Tensor<1>, BTreeMap<String, Tensor<1>>), PolicyError> {
+        let loss = self.forward(batch, noise, time)?.loss;
+        let grads = loss.backward();
+        let grads = self.trainable.iter().filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g))).collect();
+        Ok((loss.inner(), grads))
+    }
+
+    /// Clips to the global norm and applies AdamW, unless the loss is not finite.
+    fn finish_step(&mut self, loss: f32, norm_sq: f64, grads: BTreeMap<String, Tensor<1>>, lr: f64) -> Result<StepReport, PolicyError> {
+        if !loss.is_finite() {
+            return Err(PolicyError::Input(format!("training loss is {loss}; refusing to apply the update")));
+        }
+        let grad_norm = norm_sq.sqrt();
         let clip = (self.optimizer.grad_clip_norm / (grad_norm + 1e-6)).min(1.0);
         self.apply_adamw(grads, clip, lr);
-        Ok((StepReport { loss, grad_norm: grad_norm as f32, lr }, raw_grads))
+        Ok(StepReport { loss, grad_norm: grad_norm as f32, lr })
     }
 
     /// torch.optim.AdamW on every trainable tensor that received a gradient.
@@ -215,4 +248,14 @@ impl Trainer {
         }
         self.model = self.model.with_trainable(&ParamStore::from_flat(self.trainable.clone()));
     }
+}
+
+/// Sum of the squares of every gradient, as one scalar tensor (one read for the global norm).
+fn squared_norm(grads: &BTreeMap<String, Tensor<1>>) -> Option<Tensor<1>> {
+    let squares: Vec<Tensor<1>> = grads.values().map(|g| g.clone().square().sum()).collect();
+    (!squares.is_empty()).then(|| Tensor::cat(squares, 0).sum())
+}
+
+fn read_error(e: impl std::fmt::Display) -> PolicyError {
+    PolicyError::Input(format!("reading a tensor from the device failed: {e}"))
 }

@@ -51,7 +51,12 @@ const NORMALIZER_PREFIXES: [&str; 3] = ["normalize_inputs", "normalize_targets",
 /// `model._orig_mod.` prefix torch.compile leaves and dropping legacy normaliser buffers.
 pub fn read_safetensors(path: &Path) -> Result<WeightMap, PolicyError> {
     let bytes = std::fs::read(path).map_err(|e| PolicyError::io(path, e))?;
-    let st = SafeTensors::deserialize(&bytes)
+    parse_safetensors(&bytes, path)
+}
+
+/// [`read_safetensors`] of bytes already in memory (a download); `path` only names the source in errors.
+pub fn parse_safetensors(bytes: &[u8], path: &Path) -> Result<WeightMap, PolicyError> {
+    let st = SafeTensors::deserialize(bytes)
         .map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
     let mut out = WeightMap::new();
     for (key, view) in st.tensors() {
@@ -190,6 +195,16 @@ impl ParamStore {
 
     pub fn flat(&self) -> impl Iterator<Item = (&String, &Tensor<1>, &Vec<usize>)> {
         self.tensors.iter().map(|(k, (t, s))| (k, t, s))
+    }
+
+    /// [`ParamStore::to_host`], read asynchronously (a browser's WebGPU device cannot read synchronously).
+    pub async fn to_host_async(&self) -> Result<WeightMap, PolicyError> {
+        let mut out = WeightMap::new();
+        for (k, (t, s)) in &self.tensors {
+            let data = t.to_data_async().await.map_err(|e| PolicyError::Input(format!("reading {k} from the device: {e}")))?;
+            out.insert(k.clone(), HostTensor::new(s.clone(), data.convert::<f32>().try_into_vec::<f32>().expect("f32 tensor data")));
+        }
+        Ok(out)
     }
 
     pub fn to_host(&self) -> WeightMap {

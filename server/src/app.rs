@@ -1,5 +1,6 @@
-//! HTTP routes: `GET /ws` (the federation WebSocket), `GET /model/{version}` (global trainable tensors)
-//! and `GET /shard/{index}` with `GET /shard/{index}/manifest` (a client's data shard, its size and checksum).
+//! HTTP routes: `GET /ws` (the federation WebSocket) and `GET /model/{version}` (global trainable tensors), plus
+//! the volunteers' downloads and uploads ([`crate::volunteer`]), the operator console's API ([`crate::console`])
+//! and, for every other path, the pages under `www-dir` ([`crate::static_files`]).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -18,8 +19,12 @@ use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 use crate::connection::handle_socket;
+use crate::console::{self, ConsoleHub};
 use crate::coordinator::Event;
 use crate::error::ServerError;
+use crate::run_dir::RunDir;
+use crate::static_files;
+use crate::volunteer::{self, Sessions, Volunteers};
 
 /// The global model as served: its version and safetensors bytes.
 #[derive(Debug, Clone)]
@@ -39,16 +44,25 @@ pub struct AppState {
     /// Token clients must present on join; `None` means no authentication.
     pub auth_token: Option<Arc<str>>,
     pub next_client_id: Arc<AtomicU64>,
-    /// Client shard files by shard index (each with its `.manifest.json` sidecar).
-    pub shards: Arc<Vec<PathBuf>>,
+    /// What volunteers download: setup, shards, frozen weights.
+    pub volunteers: Arc<Volunteers>,
+    /// Session tokens of connected clients, for their uploads.
+    pub sessions: Sessions,
+    /// Where uploads are filed.
+    pub run_dir: RunDir,
+    /// The operator console's live state and controls.
+    pub console: ConsoleHub,
+    /// The pages served to browsers (`www-dir`).
+    pub www_dir: Arc<PathBuf>,
 }
 
 pub fn app(state: AppState) -> Router {
     Router::new()
         .route("/ws", get(ws_upgrade))
         .route("/model/{version}", get(get_model))
-        .route("/shard/{index}", get(get_shard))
-        .route("/shard/{index}/manifest", get(get_shard_manifest))
+        .merge(volunteer::routes())
+        .merge(console::routes(&state.console))
+        .fallback(static_files::serve)
         .with_state(state)
 }
 
@@ -80,21 +94,4 @@ async fn get_model(
         model.safetensors.clone(),
     )
         .into_response())
-}
-
-fn shard_path(state: &AppState, index: usize) -> Result<&PathBuf, ServerError> {
-    state.shards.get(index).ok_or(ServerError::NoShard { index, count: state.shards.len() })
-}
-
-/// The shard file as stored; clients check it against the manifest's size and SHA-256.
-async fn get_shard(Path(index): Path<usize>, State(state): State<AppState>) -> Result<Response, ServerError> {
-    let path = shard_path(&state, index)?;
-    let bytes = tokio::fs::read(path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
-    Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
-}
-
-async fn get_shard_manifest(Path(index): Path<usize>, State(state): State<AppState>) -> Result<Response, ServerError> {
-    let path = fedvla_data::shard::sidecar_path(shard_path(&state, index)?);
-    let json = tokio::fs::read(&path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
-    Ok(([(CONTENT_TYPE, "application/json")], json).into_response())
 }

@@ -78,10 +78,15 @@ pub struct RunConfig {
     pub init_policy: String,
     pub eval_every: u64,
     pub rollout_episodes: usize,
+    pub client_rollout_episodes: u32,
+    pub rollout_max_frames: u32,
     pub round_deadline_ms: u64,
     pub listen: String,
     pub max_frame_bytes: usize,
     pub auth_token: String,
+    pub operator_token: String,
+    pub auto_start: bool,
+    pub www_dir: String,
     pub output_dir: String,
 }
 
@@ -96,11 +101,16 @@ impl Default for RunConfig {
 }
 
 impl RunConfig {
+    /// Parses a configuration; keys it does not set take configs/default.toml's values (so a run directory written
+    /// before a key existed still resumes), unknown keys are refused.
     pub fn from_toml(text: &str, path: &str) -> Result<Self, ConfigError> {
-        let cfg: Self = toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: path.into(),
-            source: Box::new(e),
-        })?;
+        let parse_error = |e| ConfigError::Parse { path: path.into(), source: Box::new(e) };
+        let mut table: toml::Table = toml::from_str(text).map_err(parse_error)?;
+        let defaults: toml::Table = toml::from_str(DEFAULT_CONFIG).expect("configs/default.toml is TOML");
+        for (key, value) in defaults {
+            table.entry(key).or_insert(value);
+        }
+        let cfg: Self = table.try_into().map_err(parse_error)?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -217,6 +227,16 @@ mod tests {
             RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(),
             cfg
         );
+    }
+
+    #[test]
+    fn a_file_without_newer_keys_takes_their_defaults_and_unknown_keys_are_refused() {
+        let old = "num-server-rounds = 3\nseed = 9\n";
+        let cfg = RunConfig::from_toml(old, "old/config.toml").unwrap();
+        assert_eq!((cfg.num_server_rounds, cfg.seed), (3, 9));
+        assert_eq!(cfg.www_dir, RunConfig::default().www_dir);
+        let err = RunConfig::from_toml("num-rounds = 3\n", "typo.toml").unwrap_err().to_string();
+        assert!(err.contains("typo.toml") && err.contains("num-rounds"), "{err}");
     }
 
     #[test]

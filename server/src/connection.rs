@@ -74,6 +74,7 @@ where
         }
     }
     tracing::info!(client_id, "client left");
+    conn.state.sessions.close(client_id);
     conn.state.events.send(Event::Left { client_id }).await.ok();
 }
 
@@ -193,10 +194,12 @@ where
         if self.state.events.send(joined).await.is_err() {
             return None;
         }
+        let session = self.state.sessions.open(client_id);
         let welcome = ServerMessage::Welcome {
             client_id,
             protocol_version: PROTOCOL_VERSION,
             max_frame_bytes: self.state.limits.max_frame_bytes as u32,
+            session,
         };
         match self.send(&welcome).await {
             Flow::Continue => Some(inbox),
@@ -263,9 +266,20 @@ where
                     reassembler: None,
                     bytes: 0,
                 };
-                return Flow::Continue;
+                // For the console's client table: training is over, the update is on its way.
+                return self.emit(Event::Uploading { client_id }).await;
             }
             ClientMessage::Metrics(metrics) => Event::Metrics { client_id, metrics },
+            ClientMessage::RolloutResult {
+                round,
+                model_version,
+                episodes,
+            } => Event::RolloutResult {
+                client_id,
+                round,
+                model_version,
+                episodes,
+            },
             ClientMessage::EvalResult {
                 round,
                 examples,
@@ -410,6 +424,11 @@ mod tests {
 
     use super::*;
     use crate::app::PublishedModel;
+    use crate::config::RunConfig;
+    use crate::console::ConsoleHub;
+    use crate::coordinator::RunStatus;
+    use crate::run_dir::RunDir;
+    use crate::volunteer::{Sessions, VolunteerOffer, Volunteers};
 
     fn tensors(bias: f32) -> NamedTensors {
         let mut t = NamedTensors::new();
@@ -424,6 +443,7 @@ mod tests {
         events: mpsc::Receiver<Event>,
         cancel: CancellationToken,
         task: tokio::task::JoinHandle<()>,
+        _run_base: tempfile::TempDir,
     }
 
     impl Harness {
@@ -433,6 +453,7 @@ mod tests {
             let (server_tx, from_server) = mpsc::unbounded_channel::<Message>();
             let (events_tx, events) = mpsc::channel(16);
             let cancel = CancellationToken::new();
+            let run_base = tempfile::tempdir().unwrap();
             let spec = tensors(0.0).spec();
             let (_model_tx, model) = watch::channel(Arc::new(PublishedModel {
                 version: 0,
@@ -446,7 +467,11 @@ mod tests {
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
                 next_client_id: Arc::new(AtomicU64::new(7)),
-                shards: Arc::new(Vec::new()),
+                volunteers: Arc::new(Volunteers::new(VolunteerOffer::bare("linreg"))),
+                sessions: Sessions::default(),
+                run_dir: RunDir::create(run_base.path(), &RunConfig::default()).unwrap(),
+                console: ConsoleHub::new("operator".into(), &RunConfig::default(), watch::channel(RunStatus::default()).1),
+                www_dir: Arc::new(std::path::PathBuf::from("www")),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
                 tx.send(msg).ok();
@@ -462,6 +487,7 @@ mod tests {
                 events,
                 cancel,
                 task,
+                _run_base: run_base,
             }
         }
 
@@ -526,6 +552,7 @@ mod tests {
         };
 
         h.upload(&tensors(0.5));
+        assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 7 })));
         match h.events.recv().await {
             Some(Event::Update {
                 client_id: 7,
@@ -546,6 +573,7 @@ mod tests {
         }
 
         h.upload(&tensors(f32::NAN));
+        assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 7 })));
         assert!(matches!(
             h.events.recv().await,
             Some(Event::Rejected {

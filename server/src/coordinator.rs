@@ -1,9 +1,11 @@
 //! The one aggregation task: owns the clients' outboxes, the global model, the strategy and the run directory,
-//! and is fed by the connections through a channel.
+//! and is fed by the connections through a channel. It tells the operator console ([`ConsoleHub`]) what happens
+//! and takes the operator's decisions (pause, stop, settings) from it at round boundaries.
 //!
-//! Round lifecycle: wait for `min-clients`; sample clients (seeded, by `fraction-fit`); send tasks; collect until
-//! every sampled client is done or the deadline passes; aggregate; evaluate; persist; next round. A round with
-//! fewer than `min-fit` updates is retried with a fresh sample.
+//! Round lifecycle: wait until the operator lets rounds run and `min-clients` are connected; take up the
+//! operator's new settings; sample clients (seeded, by `fraction-fit`); send tasks; collect until every sampled
+//! client is done or the deadline passes; aggregate; evaluate; persist; next round. A round with fewer than
+//! `min-fit` updates is retried with a fresh sample. Stopped by the operator, the run ends after the current round.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -12,7 +14,7 @@ use std::time::{Duration, Instant};
 use axum::body::Bytes;
 use fedvla_federation::{
     AggregateError, BoxError, Capabilities, ErrorCode, EvalMetrics, Evaluator, NamedTensors,
-    RoundMetrics, RoundTask, ServerMessage, Strategy,
+    RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, Strategy,
 };
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -22,6 +24,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::app::PublishedModel;
 use crate::config::RunConfig;
+use crate::console::{ClientState, ConsoleHub, RunState, Settings};
 use crate::run_dir::{ModelExporter, RunDir, RunDirError};
 
 /// What connections tell the coordinator.
@@ -49,6 +52,17 @@ pub enum Event {
         round: u64,
         examples: u64,
         loss: f64,
+    },
+    /// Sim rollouts of the model version a task started from (videos already stored by HTTP).
+    RolloutResult {
+        client_id: u64,
+        round: u64,
+        model_version: u64,
+        episodes: Vec<RolloutEpisode>,
+    },
+    /// A client announced an update (`UpdateHeader`); its frames are on the way.
+    Uploading {
+        client_id: u64,
     },
     /// Input refused by a connection (already answered with an `Error`); `None` before the client joined.
     Rejected {
@@ -107,6 +121,7 @@ pub struct Coordinator {
     pub completed: Option<u64>,
     pub model_tx: watch::Sender<Arc<PublishedModel>>,
     pub status_tx: watch::Sender<RunStatus>,
+    pub console: ConsoleHub,
 }
 
 struct ClientEntry {
@@ -120,6 +135,7 @@ struct Participant {
     update: Option<UpdateReceived>,
     metrics: Option<RoundMetrics>,
     eval: Option<(u64, f64)>,
+    rollout: Option<serde_json::Value>,
     refused: Vec<ErrorCode>,
     done: bool,
 }
@@ -127,6 +143,8 @@ struct Participant {
 struct RoundState {
     round: u64,
     participants: BTreeMap<u64, Participant>,
+    /// Whether the tasks asked for sim rollouts, which clients run after their held-out evaluation.
+    rollouts_requested: bool,
 }
 
 impl Coordinator {
@@ -162,27 +180,49 @@ impl Running {
             }
             None => {
                 let metrics = self.evaluate(0).await?;
-                self.persist(0, json!({ "clients": [], "global": metrics }))
+                let line = self
+                    .persist(0, json!({ "clients": [], "global": metrics }))
                     .await?;
+                self.c.console.round_closed(0, 0, 0, Some(&line));
                 1
             }
         };
-        for round in first..=self.c.config.num_server_rounds {
-            self.run_round(round).await?;
+        if *self.c.console.run_state().borrow() == RunState::WaitingForStart {
+            tracing::info!("waiting for the operator to start the run in the console");
         }
-        let rounds = self.c.config.num_server_rounds;
+        for round in first..=self.c.config.num_server_rounds {
+            if !self.run_round(round).await? {
+                tracing::info!(round, "stopped by the operator before this round");
+                break;
+            }
+        }
+        let rounds = self.c.global_version();
         for client in self.clients.values() {
             client.outbox.send(ServerMessage::Finished { rounds }).ok();
         }
+        self.c.console.finish();
         self.c.status_tx.send_modify(|s| s.finished = true);
         tracing::info!(rounds, "run finished");
         Ok(self.c.status_tx.borrow().clone())
     }
 
-    async fn run_round(&mut self, round: u64) -> Result<(), CoordinatorError> {
+    /// Runs round `round` to completion; false when the operator stopped the run before it could start.
+    async fn run_round(&mut self, round: u64) -> Result<bool, CoordinatorError> {
         let mut attempt = 0;
+        // The operator's changes this round's tasks are the first to use, for its metrics line.
+        let mut new_settings = Settings::default();
         loop {
-            self.wait_for_clients().await?;
+            if !self.wait_until_ready().await? {
+                return Ok(false);
+            }
+            if let Some((config, changed)) = self.c.console.take_settings() {
+                tracing::info!(round, changed = %json!(changed), "this round uses the operator's new settings");
+                self.c.config = config;
+                // Written back so that a resumed run goes on with them.
+                let (run_dir, config) = (self.c.run_dir.clone(), self.c.config.clone());
+                blocking(move || run_dir.write_config(&config)).await?;
+                new_settings.merge(changed);
+            }
             let started = Instant::now();
             let state = self.start_round(round, attempt);
             let mut state = self.collect(state).await?;
@@ -210,9 +250,11 @@ impl Running {
                     updates: accepted,
                 });
                 self.c.status_tx.send_modify(|s| s.retried_rounds += 1);
+                self.c.console.round_closed(round, attempt, accepted, None);
                 attempt += 1;
                 continue;
             }
+            let contributors: Vec<u64> = updates.iter().map(|(_, id, _)| *id).collect();
             self.aggregate(
                 updates
                     .into_iter()
@@ -228,24 +270,45 @@ impl Running {
                 None
             };
             let seconds = started.elapsed().as_secs_f64();
-            self.persist(round, json!({ "attempt": attempt, "seconds": seconds, "clients": clients, "global": metrics }))
-                .await?;
+            let mut line = json!({ "attempt": attempt, "seconds": seconds, "clients": clients, "global": metrics });
+            if !new_settings.is_empty() {
+                line["settings"] = json!(new_settings);
+            }
+            let line = self.persist(round, line).await?;
             self.broadcast(ServerMessage::RoundClosed {
                 round,
                 accepted: true,
                 model_version: round,
                 updates: accepted,
             });
-            return Ok(());
+            for id in contributors {
+                self.c.console.client_changed(id, |c| c.updates_accepted += 1);
+            }
+            self.c.console.round_closed(round, attempt, accepted, Some(&line));
+            return Ok(true);
         }
     }
 
-    async fn wait_for_clients(&mut self) -> Result<(), CoordinatorError> {
-        while self.clients.len() < self.c.config.min_clients {
-            let event = self.next_event().await?;
-            self.handle(event, None);
+    /// Waits until a round may start: the operator lets rounds run and `min-clients` are connected. False when the
+    /// operator stopped the run instead.
+    async fn wait_until_ready(&mut self) -> Result<bool, CoordinatorError> {
+        let mut operator = self.c.console.run_state();
+        loop {
+            let state = *operator.borrow_and_update();
+            match state {
+                RunState::Stopping | RunState::Finished => return Ok(false),
+                RunState::Running if self.clients.len() >= self.c.config.min_clients => return Ok(true),
+                RunState::WaitingForStart | RunState::Paused | RunState::Running => {}
+            }
+            tokio::select! {
+                // The hub, which holds the sender, lives as long as the coordinator.
+                _ = operator.changed() => {}
+                event = self.next_event() => {
+                    let event = event?;
+                    self.handle(event, None);
+                }
+            }
         }
-        Ok(())
     }
 
     async fn next_event(&mut self) -> Result<Event, CoordinatorError> {
@@ -273,6 +336,7 @@ impl Running {
         picked.sort_unstable();
         let version = self.c.global_version();
         let mut participants = BTreeMap::new();
+        let mut rollouts_requested = false;
         for i in picked {
             let (name, client_id) = pool[i];
             let task = RoundTask {
@@ -290,11 +354,25 @@ impl Running {
                     .client_params(),
                 deadline_ms: cfg.round_deadline_ms,
                 eval_request: round.is_multiple_of(cfg.eval_every),
+                // Same seeds every round, so success rates compare across rounds.
+                rollout: (cfg.client_rollout_episodes > 0 && round.is_multiple_of(cfg.eval_every)).then(|| RolloutRequest {
+                    episodes: cfg.client_rollout_episodes,
+                    first_seed: CLIENT_ROLLOUT_SEED,
+                    max_frames: cfg.rollout_max_frames,
+                }),
             };
+            // Clients evaluate the model they start from (held-out loss, then sim rollouts) before they train.
+            let first_step = if task.eval_request || task.rollout.is_some() {
+                ClientState::Evaluating
+            } else {
+                ClientState::Training
+            };
+            rollouts_requested |= task.rollout.is_some();
             self.clients[&client_id]
                 .outbox
                 .send(ServerMessage::RoundTask(task))
                 .ok();
+            self.c.console.client_changed(client_id, |c| c.state = first_step);
             participants.insert(
                 client_id,
                 Participant {
@@ -304,9 +382,11 @@ impl Running {
             );
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
+        self.c.console.round_started(round, attempt, participants.keys().copied().collect());
         RoundState {
             round,
             participants,
+            rollouts_requested,
         }
     }
 
@@ -332,6 +412,7 @@ impl Running {
 
     fn handle(&mut self, event: Event, round: Option<&mut RoundState>) {
         let current = round.as_deref().map(|r| r.round);
+        let rollouts_requested = round.as_deref().is_some_and(|r| r.rollouts_requested);
         let mut participants = round.map(|r| &mut r.participants);
         // Each event concerns at most one participant, so the map is taken once.
         let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
@@ -343,10 +424,12 @@ impl Running {
                 outbox,
             } => {
                 tracing::debug!(client_id, ?capabilities, "registered");
+                self.c.console.client_joined(client_id, &name, &capabilities.backend);
                 self.clients.insert(client_id, ClientEntry { name, outbox });
             }
             Event::Left { client_id } => {
                 self.clients.remove(&client_id);
+                self.c.console.client_left(client_id);
                 if let Some(p) = participant(client_id) {
                     p.done = true;
                 }
@@ -372,7 +455,15 @@ impl Running {
                     }
                 }
             },
+            Event::Uploading { client_id } => {
+                self.c.console.client_changed(client_id, |c| c.state = ClientState::Uploading);
+            }
             Event::Metrics { client_id, metrics } => {
+                let (bytes_up, bytes_down) = (metrics.bytes_up, metrics.bytes_down);
+                self.c.console.client_changed(client_id, |c| {
+                    c.state = ClientState::Idle;
+                    (c.bytes_up, c.bytes_down) = (bytes_up, bytes_down);
+                });
                 if let Some(p) = participant(client_id).filter(|_| Some(metrics.round) == current) {
                     p.metrics = Some(metrics);
                     p.done = true;
@@ -386,6 +477,25 @@ impl Running {
             } => {
                 if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
                     p.eval = Some((examples, loss));
+                    let next = if rollouts_requested { ClientState::Evaluating } else { ClientState::Training };
+                    self.c.console.client_changed(client_id, |c| c.state = next);
+                }
+            }
+            Event::RolloutResult {
+                client_id,
+                round: r,
+                model_version,
+                episodes,
+            } => {
+                if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
+                    let record = rollout_record(model_version, &episodes);
+                    let dir = self.c.run_dir.client_eval_dir(r, client_id);
+                    if let Err(e) = write_rollout_results(&dir, &record) {
+                        tracing::warn!(client_id, round = r, error = %e, "client rollout results not stored");
+                    }
+                    tracing::info!(client_id, round = r, success_rate = %record["success_rate"], "client rolled out the global model");
+                    p.rollout = Some(record);
+                    self.c.console.client_changed(client_id, |c| c.state = ClientState::Training);
                 }
             }
             Event::Rejected { client_id, code } => {
@@ -443,11 +553,12 @@ impl Running {
     }
 
     /// Saves the round's model, appends its metrics line, then publishes the model for download.
+    /// Returns the metrics line as written.
     async fn persist(
         &mut self,
         round: u64,
         mut line: serde_json::Value,
-    ) -> Result<(), CoordinatorError> {
+    ) -> Result<serde_json::Value, CoordinatorError> {
         let rejections: BTreeMap<&str, u64> = std::mem::take(&mut self.round_rejections)
             .into_iter()
             .map(|(c, n)| (c.as_str(), n))
@@ -457,17 +568,19 @@ impl Running {
         line["model_crc32"] = json!(self.c.global.checksum());
         line["rejections"] = json!(rejections);
         line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
-        let (run_dir, exporters, global) = (
+        let (run_dir, exporters, global, config) = (
             self.c.run_dir.clone(),
             Arc::clone(&self.c.exporters),
             Arc::clone(&self.c.global),
+            self.c.config.clone(),
         );
-        let bytes = blocking(move || -> Result<Vec<u8>, RunDirError> {
-            run_dir.save_model(round, &global, &exporters)?;
+        let (line, bytes) = blocking(move || -> Result<_, RunDirError> {
+            run_dir.save_model(round, &global, &exporters, &config)?;
             run_dir.append_metrics(&line)?;
-            global
+            let bytes = global
                 .to_safetensors()
-                .map_err(|source| RunDirError::Model { round, source })
+                .map_err(|source| RunDirError::Model { round, source })?;
+            Ok((line, bytes))
         })
         .await?;
         self.c.model_tx.send_replace(Arc::new(PublishedModel {
@@ -477,7 +590,7 @@ impl Running {
         self.c.completed = Some(round);
         self.c.status_tx.send_modify(|s| s.completed_rounds = round);
         tracing::info!(round, "round completed");
-        Ok(())
+        Ok(line)
     }
 }
 
@@ -513,10 +626,29 @@ fn client_records(state: &RoundState) -> Vec<serde_json::Value> {
                 "bytes_down": p.metrics.as_ref().map(|m| m.bytes_down),
                 "eval_examples": p.eval.map(|e| e.0),
                 "eval_loss": p.eval.map(|e| e.1),
+                "rollout": p.rollout,
                 "refused": p.refused.iter().map(|c| c.as_str()).collect::<Vec<_>>(),
             })
         })
         .collect()
+}
+
+/// First seed of the episodes clients roll out (apart from the seeds datasets are recorded on).
+const CLIENT_ROLLOUT_SEED: u64 = 20_000;
+
+/// A client's rollouts as `results.json` and its metrics line record them.
+fn rollout_record(model_version: u64, episodes: &[RolloutEpisode]) -> serde_json::Value {
+    let successes = episodes.iter().filter(|e| e.success).count();
+    let success_rate = if episodes.is_empty() { None } else { Some(successes as f64 / episodes.len() as f64) };
+    json!({ "model_version": model_version, "episodes": episodes, "success_rate": success_rate })
+}
+
+/// `evaluate/round_N/client_K/results.json`, written whole then renamed (small, so on the coordinator's task).
+fn write_rollout_results(dir: &std::path::Path, record: &serde_json::Value) -> std::io::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    let tmp = dir.join("results.json.partial");
+    std::fs::write(&tmp, serde_json::to_vec_pretty(record).expect("json"))?;
+    std::fs::rename(tmp, dir.join("results.json"))
 }
 
 /// splitmix64 of `a` combined with `b`: seeds derived per round, attempt and client.

@@ -11,13 +11,23 @@ pub enum ServerError {
     NoShard { index: usize, count: usize },
     #[error("shard unavailable: {0}")]
     ShardIo(String),
+    #[error("not found: {0}")]
+    NotFound(String),
+    #[error("unauthorized: {0}")]
+    Unauthorized(String),
+    #[error("bad request: {0}")]
+    BadRequest(String),
+    #[error("could not store: {0}")]
+    Storage(String),
 }
 
 impl IntoResponse for ServerError {
     fn into_response(self) -> Response {
         let status = match self {
-            Self::ModelVersion { .. } | Self::NoShard { .. } => StatusCode::NOT_FOUND,
-            Self::ShardIo(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            Self::ModelVersion { .. } | Self::NoShard { .. } | Self::NotFound(_) => StatusCode::NOT_FOUND,
+            Self::Unauthorized(_) => StatusCode::UNAUTHORIZED,
+            Self::BadRequest(_) => StatusCode::BAD_REQUEST,
+            Self::ShardIo(_) | Self::Storage(_) => StatusCode::INTERNAL_SERVER_ERROR,
         };
         (status, self.to_string()).into_response()
     }

@@ -4,6 +4,7 @@
 pub mod app;
 pub mod config;
 pub mod connection;
+pub mod console;
 pub mod coordinator;
 pub mod datagen;
 pub mod error;
@@ -12,5 +13,7 @@ pub mod native_client;
 pub mod run_dir;
 pub mod server;
 pub mod sim_eval;
+pub mod static_files;
+pub mod volunteer;
 pub mod smolvla_workload;
 pub mod workload;

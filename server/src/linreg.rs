@@ -12,6 +12,7 @@ use rand::{Rng, SeedableRng};
 
 use crate::config::{Partitioning, RunConfig};
 use crate::run_dir::ModelExporter;
+use crate::volunteer::VolunteerOffer;
 use crate::workload::Workload;
 
 /// Raw input size.
@@ -265,6 +266,11 @@ impl Workload for LinRegWorkload {
         Vec::new()
     }
 
+    /// No shards or weights to download: a linreg client generates its shard from its index.
+    fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
+        Ok(VolunteerOffer::bare("linreg"))
+    }
+
     fn trainer(&self, shard: usize) -> Result<LinRegTrainer, BoxError> {
         Ok(LinRegTrainer::new(shard, self.partitioning))
     }
@@ -290,6 +296,7 @@ mod tests {
             },
             deadline_ms: 1000,
             eval_request: false,
+            rollout: None,
         }
     }
 

@@ -12,7 +12,12 @@ use crate::config::{ConfigError, RunConfig};
 pub const CONFIG_FILE: &str = "config.toml";
 pub const METRICS_FILE: &str = "metrics.jsonl";
 pub const MODELS_DIR: &str = "global_model";
+/// In a round's model directory: the LeRobot policy directory and the sim rollouts of the global model.
+pub const POLICY_DIR: &str = "policy";
+pub const ROLLOUTS_DIR: &str = "rollouts";
 pub const LOG_FILE: &str = "server.log";
+/// Clients' evaluations of the global model: `evaluate/round_N/client_K/` (rollout videos and results.json).
+pub const EVALUATE_DIR: &str = "evaluate";
 /// The trainable tensors of each round; resume reads it back.
 pub const TRAINABLE_FILE: &str = "trainable.safetensors";
 
@@ -44,9 +49,10 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunDirError + '_ {
     }
 }
 
-/// Writes one round's global model into a fresh directory. The LeRobot policy export plugs in here.
+/// Writes one round's global model into a fresh directory. The LeRobot policy export plugs in here. `config` is
+/// the run's configuration as the round ran it: the operator may have changed settings (e.g. rollout-episodes).
 pub trait ModelExporter: Send + Sync {
-    fn export(&self, round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError>;
+    fn export(&self, round: u64, global: &NamedTensors, config: &RunConfig, dir: &Path) -> Result<(), BoxError>;
 }
 
 /// Writes the trainable tensors as `trainable.safetensors` (always on: resume needs it).
@@ -54,7 +60,7 @@ pub trait ModelExporter: Send + Sync {
 pub struct TrainableSafetensors;
 
 impl ModelExporter for TrainableSafetensors {
-    fn export(&self, _round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError> {
+    fn export(&self, _round: u64, global: &NamedTensors, _config: &RunConfig, dir: &Path) -> Result<(), BoxError> {
         fs::write(dir.join(TRAINABLE_FILE), global.to_safetensors()?)?;
         Ok(())
     }
@@ -149,6 +155,11 @@ impl RunDir {
         file.sync_data().map_err(io(&path))
     }
 
+    /// Where client `client_id`'s evaluation during round `round` is filed.
+    pub fn client_eval_dir(&self, round: u64, client_id: u64) -> PathBuf {
+        self.path.join(EVALUATE_DIR).join(format!("round_{round}")).join(format!("client_{client_id}"))
+    }
+
     pub fn model_dir(&self, round: u64) -> PathBuf {
         self.path.join(MODELS_DIR).join(format!("round_{round}"))
     }
@@ -159,6 +170,7 @@ impl RunDir {
         round: u64,
         global: &NamedTensors,
         exporters: &[Box<dyn ModelExporter>],
+        config: &RunConfig,
     ) -> Result<(), RunDirError> {
         let dir = self.model_dir(round);
         let tmp = dir.with_extension("tmp");
@@ -168,7 +180,7 @@ impl RunDir {
         fs::create_dir_all(&tmp).map_err(io(&tmp))?;
         for exporter in exporters {
             exporter
-                .export(round, global, &tmp)
+                .export(round, global, config, &tmp)
                 .map_err(|source| RunDirError::Export { round, source })?;
         }
         if dir.exists() {
@@ -235,8 +247,8 @@ mod tests {
         let mut t = NamedTensors::new();
         t.insert("w", vec![2], vec![1.0, 2.0]).unwrap();
         let exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
-        dir.save_model(3, &t, &exporters).unwrap();
-        dir.save_model(3, &t, &exporters).unwrap();
+        dir.save_model(3, &t, &exporters, &RunConfig::default()).unwrap();
+        dir.save_model(3, &t, &exporters, &RunConfig::default()).unwrap();
         assert_eq!(dir.load_model(3).unwrap(), t);
         assert!(!dir.model_dir(3).with_extension("tmp").exists());
     }

@@ -15,8 +15,10 @@ use tokio_util::sync::CancellationToken;
 
 use crate::app::{AppState, PublishedModel, app};
 use crate::config::RunConfig;
+use crate::console::{ConsoleHub, random_token};
 use crate::coordinator::{Coordinator, CoordinatorError, RunStatus};
 use crate::run_dir::{ModelExporter, RunDir, RunDirError, TrainableSafetensors};
+use crate::volunteer::{Sessions, VolunteerOffer, Volunteers};
 
 /// Headroom over the exact update size before an update counts as oversized.
 const UPDATE_HEADROOM_BYTES: u64 = 64 * 1024;
@@ -31,8 +33,8 @@ pub struct ServerParts {
     pub evaluator: Box<dyn Evaluator + Send>,
     /// Extra exporters run after `trainable.safetensors` is written (e.g. the LeRobot policy directory).
     pub exporters: Vec<Box<dyn ModelExporter>>,
-    /// Client shard files served at `GET /shard/{index}` (empty when the workload has none).
-    pub shards: Vec<PathBuf>,
+    /// What volunteers download (shards, policy, frozen weights).
+    pub volunteer: VolunteerOffer,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -50,6 +52,7 @@ pub struct ServerHandle {
     addr: SocketAddr,
     cancel: CancellationToken,
     status: watch::Receiver<RunStatus>,
+    operator_token: String,
     coordinator: JoinHandle<Result<RunStatus, CoordinatorError>>,
     http: JoinHandle<std::io::Result<()>>,
 }
@@ -63,7 +66,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         strategy,
         evaluator,
         exporters,
-        shards,
+        volunteer,
     } = parts;
     let spec = Arc::new(initial.spec());
     let completed = run_dir.last_completed_round()?;
@@ -86,6 +89,9 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         ..RunStatus::default()
     });
     let (events_tx, events) = mpsc::channel(1024);
+    let generated_token = config.operator_token.is_empty();
+    let operator_token = if generated_token { random_token() } else { config.operator_token.clone() };
+    let console = ConsoleHub::new(operator_token.clone(), &config, status.clone());
     let cancel = CancellationToken::new();
     let limits = UpdateLimits::for_spec(&spec, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
     let state = AppState {
@@ -96,7 +102,11 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         limits,
         auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
         next_client_id: Arc::new(AtomicU64::new(1)),
-        shards: Arc::new(shards),
+        volunteers: Arc::new(Volunteers::new(volunteer)),
+        sessions: Sessions::default(),
+        run_dir: run_dir.clone(),
+        console: console.clone(),
+        www_dir: Arc::new(PathBuf::from(&config.www_dir)),
     };
     let mut all_exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
     all_exporters.extend(exporters);
@@ -112,6 +122,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         completed,
         model_tx,
         status_tx,
+        console,
     };
     let addr = listener.local_addr()?;
     let coordinator = tokio::spawn(coordinator.run());
@@ -127,10 +138,16 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             .await
     });
     tracing::info!(%addr, "listening");
+    if generated_token {
+        tracing::info!("console: http://{addr}/console  token: {operator_token}");
+    } else {
+        tracing::info!("console: http://{addr}/console  (token: operator-token of the run configuration)");
+    }
     Ok(ServerHandle {
         addr,
         cancel,
         status,
+        operator_token,
         coordinator,
         http,
     })
@@ -139,6 +156,11 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
 impl ServerHandle {
     pub fn addr(&self) -> SocketAddr {
         self.addr
+    }
+
+    /// What the console API wants: `operator-token`, or the one generated at start when that is empty.
+    pub fn operator_token(&self) -> &str {
+        &self.operator_token
     }
 
     pub fn status(&self) -> watch::Receiver<RunStatus> {

@@ -3,6 +3,7 @@
 //! server's held-out shard, the initial checkpoint, and a LeRobot policy directory per round.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use anyhow::Context;
 use burn::tensor::Device;
@@ -10,17 +11,20 @@ use fedvla_data::{ClientShard, ClientSplit, LeRobotDataset, Partition, Partition
 use fedvla_federation::{BoxError, Evaluator, NamedTensors};
 use fedvla_learner::tensors::{to_named, to_weights};
 use fedvla_learner::rollout::SimPolicy;
+use fedvla_learner::rollout::TaskTokens;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::tokenizer::PAD_ID;
-use fedvla_policy::weights::init_random;
+use fedvla_policy::weights::{init_random, safetensors_bytes};
+use fedvla_sim::TASK;
 use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, Tokenizer, WeightMap, WordTokenizer};
 
 use crate::config::{Partitioning, RunConfig};
 use crate::datagen::{GenDataOptions, generate_dataset};
-use crate::run_dir::ModelExporter;
+use crate::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
 use crate::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
+use crate::volunteer::VolunteerOffer;
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -36,7 +40,6 @@ pub struct SmolVlaWorkload {
     client_shards: Vec<PathBuf>,
     server_shard: PathBuf,
     seed: u64,
-    rollout_episodes: usize,
 }
 
 /// The dataset a run trains on: the configured path, recorded by the sim first when it is the
@@ -160,7 +163,7 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
-        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard, seed: config.seed, rollout_episodes: config.rollout_episodes })
+        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard, seed: config.seed })
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -171,26 +174,41 @@ impl SmolVlaWorkload {
     pub fn policy_config(&self) -> &SmolVlaConfig {
         &self.cfg
     }
+
+    /// The sim task as the policy reads it.
+    fn task_tokens(&self) -> TaskTokens {
+        self.tokenizer.encode_batch(&[TASK], self.cfg.tokenizer_max_length, self.cfg.pad_language_to == "max_length")
+    }
+
+    /// The backbone tensors no client trains: exported with every round and downloaded once by volunteers.
+    fn frozen_weights(&self) -> WeightMap {
+        let trainable: std::collections::BTreeSet<String> =
+            self.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
+        self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect()
+    }
 }
 
 /// Rolls each round's global model out in the sim (`global_model/round_N/rollouts/`: results.json
-/// with the success rate and one MP4 per episode), on the same seeds every round.
+/// with the success rate and one MP4 per episode), on the same seeds every round, for as many
+/// episodes as `rollout-episodes` says at that round (the operator may change it; 0: none).
 struct SimRollouts {
     cfg: SmolVlaConfig,
-    frozen: WeightMap,
+    frozen: Arc<WeightMap>,
     stats: NormStats,
     tokenizer: Tokenizer,
-    episodes: usize,
 }
 
 impl ModelExporter for SimRollouts {
-    fn export(&self, round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError> {
-        let mut weights = self.frozen.clone();
+    fn export(&self, round: u64, global: &NamedTensors, config: &RunConfig, dir: &Path) -> Result<(), BoxError> {
+        if config.rollout_episodes == 0 {
+            return Ok(());
+        }
+        let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
         let policy = SimPolicy::new(&self.cfg, &weights, self.stats.clone(), &self.tokenizer, &Device::flex())?;
         let source = format!("global model of round {round}");
-        let options = SimEvalOptions { episodes: self.episodes, video_size: Some(ROLLOUT_VIDEO_SIZE), ..SimEvalOptions::default() };
-        let summary = evaluate_in_sim(Agent::Policy { policy: &policy, source: &source }, &options, &dir.join("rollouts"), |_, _| {})
+        let options = SimEvalOptions { episodes: config.rollout_episodes, video_size: Some(ROLLOUT_VIDEO_SIZE), ..SimEvalOptions::default() };
+        let summary = evaluate_in_sim(Agent::Policy { policy: &policy, source: &source }, &options, &dir.join(ROLLOUTS_DIR), |_, _| {})
             .map_err(|e| format!("{e:#}"))?;
         tracing::info!(round, success_rate = summary.success_rate, mean_length = summary.mean_length, "global model rolled out in the sim");
         Ok(())
@@ -203,16 +221,16 @@ const ROLLOUT_VIDEO_SIZE: u32 = 128;
 /// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
 struct LeRobotExport {
     cfg: SmolVlaConfig,
-    frozen: WeightMap,
+    frozen: Arc<WeightMap>,
     stats: NormStats,
     tokenizer: WordTokenizer,
 }
 
 impl ModelExporter for LeRobotExport {
-    fn export(&self, _round: u64, global: &NamedTensors, dir: &Path) -> Result<(), BoxError> {
-        let mut weights = self.frozen.clone();
+    fn export(&self, _round: u64, global: &NamedTensors, _config: &RunConfig, dir: &Path) -> Result<(), BoxError> {
+        let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
-        export(&dir.join("policy"), &self.cfg, &weights, &self.stats, Backbone::Generated(&self.tokenizer))?;
+        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, Backbone::Generated(&self.tokenizer))?;
         Ok(())
     }
 }
@@ -237,29 +255,34 @@ impl Workload for SmolVlaWorkload {
     }
 
     fn exporters(&self) -> Vec<Box<dyn ModelExporter>> {
-        let trainable: std::collections::BTreeSet<String> =
-            self.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
-        let frozen: WeightMap = self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect();
-        let mut exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(LeRobotExport {
-            cfg: self.cfg.clone(),
-            frozen: frozen.clone(),
-            stats: self.stats.clone(),
-            tokenizer: self.tokenizer.clone(),
-        })];
-        if self.rollout_episodes > 0 {
-            exporters.push(Box::new(SimRollouts {
+        // One copy of the frozen tensors for both exporters.
+        let frozen = Arc::new(self.frozen_weights());
+        vec![
+            Box::new(LeRobotExport {
+                cfg: self.cfg.clone(),
+                frozen: Arc::clone(&frozen),
+                stats: self.stats.clone(),
+                tokenizer: self.tokenizer.clone(),
+            }),
+            Box::new(SimRollouts {
                 cfg: self.cfg.clone(),
                 frozen,
                 stats: self.stats.clone(),
                 tokenizer: Tokenizer::Word(self.tokenizer.clone()),
-                episodes: self.rollout_episodes,
-            }));
-        }
-        exporters
+            }),
+        ]
     }
 
-    fn shards(&self) -> Vec<PathBuf> {
-        self.client_shards.clone()
+    fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
+        let (ids, mask, _) = self.task_tokens();
+        Ok(VolunteerOffer {
+            workload: "smolvla".into(),
+            shards: self.client_shards.clone(),
+            policy: serde_json::json!({ "policy": self.cfg.to_lerobot_json(), "vlm": self.cfg.vlm_config_json() }),
+            frozen: Some(safetensors_bytes(&self.frozen_weights())?.into()),
+            rollout_task_tokens: ids.into_iter().map(|i| i as u32).collect(),
+            rollout_task_mask: mask,
+        })
     }
 
     fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError> {
@@ -267,6 +290,6 @@ impl Workload for SmolVlaWorkload {
         let examples = self.examples(path)?;
         // Each client draws its own noise and times, reproducibly.
         let seed = self.seed ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, seed, &Device::flex().autodiff(), "cpu-flex")
+        Ok(SmolVlaTrainer::new(&self.cfg, &self.weights, examples, seed, &Device::flex().autodiff(), "cpu-flex")?.with_rollouts(self.task_tokens()))
     }
 }

@@ -6,6 +6,7 @@
 use fedvla_federation::{BoxError, Evaluator, LocalTrainer, NamedTensors};
 
 use crate::run_dir::ModelExporter;
+use crate::volunteer::VolunteerOffer;
 
 pub trait Workload {
     type Trainer: LocalTrainer + Send + 'static;
@@ -17,10 +18,8 @@ pub trait Workload {
     /// Written into `global_model/round_N/` after `trainable.safetensors` (e.g. a LeRobot policy directory).
     fn exporters(&self) -> Vec<Box<dyn ModelExporter>>;
 
-    /// Shard files the server hands out over HTTP, by shard index.
-    fn shards(&self) -> Vec<std::path::PathBuf> {
-        Vec::new()
-    }
+    /// What the server hands volunteers over HTTP: shards, policy configuration, frozen weights.
+    fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError>;
 
     /// The trainer of the client holding shard `shard`.
     fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError>;

@@ -172,7 +172,7 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     expect_error(
         c.recv().await,
         ErrorCode::ProtocolVersion,
-        "protocol version 2",
+        &format!("protocol version {}", PROTOCOL_VERSION + 1),
     );
     assert_eq!(
         c.recv().await,

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use fedvla_data::LeRobotDataset;
 use fedvla_federation::codec::HEADER_LEN;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientOptions, EvalOutput, FedAvg, LocalTrainer, NamedTensors, RoundTask, TrainOutput, run_client,
+    BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, FedAvg, LocalTrainer, NamedTensors, RoundTask, TrainOutput, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_policy::PolicyDir;
@@ -20,10 +20,11 @@ use fedvla_server::server::{self, ServerParts};
 use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::workload::Workload;
 
-/// Records every update it sends.
+/// Records every update it sends; hangs from round `hang_from_round` on (a client stuck mid-round).
 struct Recording {
     inner: SmolVlaTrainer,
     updates: Arc<Mutex<Vec<(u64, TrainOutput)>>>,
+    hang_from_round: Option<u64>,
 }
 
 impl LocalTrainer for Recording {
@@ -34,6 +35,9 @@ impl LocalTrainer for Recording {
         self.inner.set_global(global)
     }
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        if self.hang_from_round.is_some_and(|r| task.round >= r) {
+            std::future::pending::<()>().await;
+        }
         let out = self.inner.train(task).await?;
         self.updates.lock().unwrap().push((task.round, out.clone()));
         Ok(out)
@@ -76,30 +80,14 @@ async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
         initial: initial.clone(),
         evaluator: workload.evaluator().unwrap(),
         exporters: workload.exporters(),
-        shards: workload.shards(),
+        volunteer: workload.volunteer_offer().unwrap(),
         strategy: Box::new(FedAvg),
         config: cfg.clone(),
         run_dir: run_dir.clone(),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
-    let url = format!("ws://{}", handle.addr());
-    let clients: Vec<_> = (0..3)
-        .map(|shard| {
-            let updates = Arc::new(Mutex::new(Vec::new()));
-            let mut trainer = Recording { inner: workload.trainer(shard).unwrap(), updates: updates.clone() };
-            let url = url.clone();
-            // Trainer futures are not Send (the browser's are not either): one thread per client.
-            let thread = std::thread::spawn(move || {
-                tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
-                    let mut transport = NativeTransport::connect(&url).await.unwrap();
-                    let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
-                    run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
-                })
-            });
-            (thread, updates)
-        })
-        .collect();
+    let clients = spawn_clients(&workload, handle.addr(), None);
     let status = handle.finish().await.unwrap();
     assert_eq!(status.completed_rounds, 2);
     assert!(status.rejections.is_empty(), "{:?}", status.rejections);
@@ -111,6 +99,27 @@ async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
         })
         .collect();
     Run { dir: run_dir.path().to_owned(), updates, initial, cfg }
+}
+
+type Updates = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
+
+/// Three native clients of `workload` on their own threads (trainer futures are not Send, the browser's are not
+/// either), recording their updates.
+fn spawn_clients(workload: &SmolVlaWorkload, addr: std::net::SocketAddr, hang_from_round: Option<u64>) -> Vec<(std::thread::JoinHandle<ClientSummary>, Updates)> {
+    (0..3)
+        .map(|shard| {
+            let updates = Updates::default();
+            let mut trainer = Recording { inner: workload.trainer(shard).unwrap(), updates: updates.clone(), hang_from_round };
+            let thread = std::thread::spawn(move || {
+                tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
+                    let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
+                    let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+                    run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
+                })
+            });
+            (thread, updates)
+        })
+        .collect()
 }
 
 fn metrics(dir: &Path) -> Vec<serde_json::Value> {
@@ -192,7 +201,7 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
         initial: workload.initial_model().unwrap(),
         evaluator: workload.evaluator().unwrap(),
         exporters: Vec::new(),
-        shards: workload.shards(),
+        volunteer: workload.volunteer_offer().unwrap(),
         strategy: Box::new(FedAvg),
         config: cfg,
         run_dir,
@@ -203,11 +212,72 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     for index in 0..3 {
         let (manifest, bytes) = transport.fetch_shard(index).await.unwrap();
         assert_eq!(bytes.len() as u64, manifest.file_bytes);
-        assert_eq!(bytes, std::fs::read(&workload.shards()[index]).unwrap());
+        assert_eq!(bytes, std::fs::read(&workload.volunteer_offer().unwrap().shards[index]).unwrap());
         let shard = fedvla_data::ClientShard::from_bytes(Path::new(&manifest.file), &bytes).unwrap();
         assert_eq!(shard.manifest.client_index, index);
     }
     let missing = transport.fetch_shard(3).await.unwrap_err().to_string();
     assert!(missing.contains("404") && missing.contains("no shard 3"), "{missing}");
     handle.kill();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = dataset(tmp.path());
+    let out = tmp.path().join("out");
+    let cfg = config(&data, &out, 5);
+    let run_dir = RunDir::create(&out, &cfg).unwrap();
+    let dir = run_dir.path().to_owned();
+    let start = |cfg: RunConfig, run_dir: RunDir| async move {
+        let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
+        let parts = ServerParts {
+            initial: workload.initial_model().unwrap(),
+            evaluator: workload.evaluator().unwrap(),
+            exporters: workload.exporters(),
+            volunteer: workload.volunteer_offer().unwrap(),
+            strategy: Box::new(FedAvg),
+            config: cfg,
+            run_dir,
+        };
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        (server::start(parts, listener).unwrap(), workload)
+    };
+    let rounds = || metrics(&dir).iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>();
+
+    // First life: the clients hang in round 2, so the kill lands while round 2 is in flight. Their threads stay
+    // parked on the hang; the test does not wait for them.
+    let (handle, workload) = start(cfg, run_dir).await;
+    let _stuck = spawn_clients(&workload, handle.addr(), Some(2));
+    let mut status = handle.status();
+    status.wait_for(|s| s.completed_rounds == 1).await.unwrap();
+    handle.kill();
+    assert_eq!(rounds(), [0, 1]);
+    let round_one = std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap();
+
+    // Second life, as `fedvla serve --resume` does it: the run directory's config and models.
+    let (run_dir, cfg) = RunDir::open(&dir).unwrap();
+    let (handle, workload) = start(cfg, run_dir.clone()).await;
+    assert_eq!(handle.status().borrow().completed_rounds, 1);
+    let clients = spawn_clients(&workload, handle.addr(), None);
+    assert_eq!(handle.finish().await.unwrap().completed_rounds, 2);
+    let mut updates = Vec::new();
+    for (thread, recorded) in clients {
+        assert_eq!(thread.join().unwrap().rounds_trained, 1, "resumed clients train round 2 only");
+        updates.extend(recorded.lock().unwrap().drain(..).map(|(round, u)| {
+            assert_eq!(round, 2);
+            u
+        }));
+    }
+    assert_eq!(rounds(), [0, 1, 2], "no round lost or counted twice");
+    assert_eq!(std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap(), round_one);
+    let global = run_dir.load_model(2).unwrap();
+    let total: f64 = updates.iter().map(|u| u.examples as f64).sum();
+    for (name, t) in global.iter() {
+        for (i, v) in t.values.iter().enumerate() {
+            let mean: f64 = updates.iter().map(|u| u.update.get(name).unwrap().values[i] as f64 * u.examples as f64).sum::<f64>() / total;
+            assert!((*v as f64 - mean).abs() <= 1e-6, "{name}[{i}]: {v} vs {mean}");
+        }
+    }
+    assert!(PolicyDir::load(&dir.join("global_model/round_2/policy")).is_ok());
 }

@@ -101,7 +101,7 @@ fn parts_of<W: Workload>(
         initial: workload.initial_model().map_err(boxed)?,
         evaluator: workload.evaluator().map_err(boxed)?,
         exporters: workload.exporters(),
-        shards: workload.shards(),
+        volunteer: workload.volunteer_offer().map_err(boxed)?,
         strategy,
         config,
         run_dir,

@@ -173,8 +173,11 @@ fn spawn_client<L: LocalTrainer + Send + 'static>(
                     } => {
                         bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
                     }
-                    ClientEvent::Uploaded { round, bytes } => {
+                    ClientEvent::Uploaded { round, bytes, .. } => {
                         bar.set_message(format!("round {round}: sent {bytes} B"));
+                    }
+                    ClientEvent::RolledOut { round, episodes, successes } => {
+                        bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
                     }
                     ClientEvent::RoundClosed { round, accepted } => {
                         if accepted {

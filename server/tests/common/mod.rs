@@ -18,8 +18,10 @@ use fedvla_server::linreg::{self, LinRegEvaluator, LinRegTrainer};
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::server::{self, ServerHandle, ServerParts};
+use fedvla_server::volunteer::VolunteerOffer;
 use futures_util::{SinkExt, StreamExt};
 use tokio::net::TcpStream;
+use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
@@ -42,7 +44,7 @@ pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
         strategy: Box::new(FedAvg),
         evaluator: Box::new(LinRegEvaluator::default()),
         exporters: Vec::new(),
-        shards: Vec::new(),
+        volunteer: VolunteerOffer::bare("linreg"),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     server::start(parts, listener).unwrap()
@@ -61,11 +63,17 @@ pub async fn wait_status(handle: &ServerHandle, pred: impl Fn(&RunStatus) -> boo
 /// Every update a client produced, by round.
 pub type Recorded = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
 
-/// The linreg trainer, recording its outputs and optionally hanging (a straggler) from some round on.
+/// Every task a client was given.
+pub type Tasks = Arc<Mutex<Vec<RoundTask>>>;
+
+/// The linreg trainer, recording its tasks and outputs, optionally hanging (a straggler) from some round on, and
+/// optionally training only when the test hands out a permit.
 pub struct TestTrainer {
     inner: LinRegTrainer,
     recorded: Recorded,
+    tasks: Tasks,
     hang_from_round: Option<u64>,
+    gate: Option<Arc<Semaphore>>,
 }
 
 impl TestTrainer {
@@ -74,9 +82,21 @@ impl TestTrainer {
         let trainer = Self {
             inner: LinRegTrainer::new(shard, Partitioning::ByEpisode),
             recorded: recorded.clone(),
+            tasks: Tasks::default(),
             hang_from_round,
+            gate: None,
         };
         (trainer, recorded)
+    }
+
+    /// Each training first takes a permit from `gate`: the test decides when rounds can finish.
+    pub fn gated(mut self, gate: Arc<Semaphore>) -> Self {
+        self.gate = Some(gate);
+        self
+    }
+
+    pub fn tasks(&self) -> Tasks {
+        self.tasks.clone()
     }
 }
 
@@ -90,6 +110,10 @@ impl LocalTrainer for TestTrainer {
     }
 
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        self.tasks.lock().unwrap().push(task.clone());
+        if let Some(gate) = &self.gate {
+            gate.acquire().await.expect("gate stays open").forget();
+        }
         if self.hang_from_round.is_some_and(|r| task.round >= r) {
             std::future::pending::<()>().await;
         }
@@ -112,17 +136,25 @@ pub fn spawn_client(
     shard: usize,
     hang_from_round: Option<u64>,
 ) -> (JoinHandle<Result<ClientSummary, ClientError>>, Recorded) {
+    let (trainer, recorded) = TestTrainer::new(shard, hang_from_round);
+    (spawn_trainer(handle, shard, trainer), recorded)
+}
+
+/// A native client named `client-<shard>` over a real WebSocket, training with `trainer`.
+pub fn spawn_trainer(
+    handle: &ServerHandle,
+    shard: usize,
+    mut trainer: TestTrainer,
+) -> JoinHandle<Result<ClientSummary, ClientError>> {
     let url = format!("ws://{}", handle.addr());
-    let (mut trainer, recorded) = TestTrainer::new(shard, hang_from_round);
-    let task = tokio::spawn(async move {
+    tokio::spawn(async move {
         let mut transport = NativeTransport::connect(&url).await.expect("connect");
         let options = ClientOptions {
             name: format!("client-{shard}"),
             auth_token: None,
         };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await
-    });
-    (task, recorded)
+    })
 }
 
 /// The metrics lines of a run.

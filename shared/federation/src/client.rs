@@ -8,8 +8,8 @@ use std::future::Future;
 use crate::codec::{encode_frames, encode_payload};
 use crate::error::{BoxError, TensorError};
 use crate::protocol::{
-    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RoundMetrics, RoundTask,
-    ServerMessage,
+    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest,
+    RoundMetrics, RoundTask, ServerMessage,
 };
 use crate::tensors::NamedTensors;
 
@@ -29,6 +29,23 @@ pub struct EvalOutput {
     pub loss: f64,
 }
 
+/// A recorded rollout video.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Video {
+    /// e.g. "episode_0.webm"; the server stores it under this name.
+    pub file_name: String,
+    /// e.g. "video/webm".
+    pub mime: String,
+    pub bytes: Vec<u8>,
+}
+
+/// One rolled-out episode and its video (the episode's `video` field is filled in by the round loop).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RolloutOutput {
+    pub episode: RolloutEpisode,
+    pub video: Option<Video>,
+}
+
 /// Trains the trainable tensors on the local shard. The policy implements this (natively and in the browser).
 pub trait LocalTrainer {
     fn capabilities(&self) -> Capabilities;
@@ -41,6 +58,16 @@ pub trait LocalTrainer {
 
     /// Evaluates the tensors last set on the local held-out split.
     fn evaluate(&mut self) -> impl Future<Output = Result<EvalOutput, BoxError>>;
+
+    /// Rolls the tensors last set out in the sim. Clients that cannot (no sim or no way to film it) report no
+    /// episodes, and the server records that.
+    fn rollout(
+        &mut self,
+        request: &RolloutRequest,
+    ) -> impl Future<Output = Result<Vec<RolloutOutput>, BoxError>> {
+        let _ = request;
+        async { Ok(Vec::new()) }
+    }
 }
 
 /// The client's connection to the server: a WebSocket for control and update frames, HTTP for models.
@@ -56,6 +83,15 @@ pub trait ClientTransport {
 
     /// Downloads the global trainable tensors of `version` as safetensors bytes (`GET /model/{version}`).
     fn fetch_model(&mut self, version: u64) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
+
+    /// Uploads a rollout video of `round` (`POST /rollout/{round}/{file_name}`, authorised by the session
+    /// token from the welcome).
+    fn upload_video(
+        &mut self,
+        round: u64,
+        session: &str,
+        video: Video,
+    ) -> impl Future<Output = Result<(), BoxError>>;
 
     /// Seconds on a monotonic clock (`performance.now()` in browsers).
     fn now_seconds(&self) -> f64;
@@ -83,9 +119,17 @@ pub enum ClientEvent {
         examples: u64,
         train_loss: f64,
     },
+    /// An update went out: its bytes, and everything sent and received since joining.
     Uploaded {
         round: u64,
         bytes: u64,
+        total_up: u64,
+        total_down: u64,
+    },
+    RolledOut {
+        round: u64,
+        episodes: u32,
+        successes: u32,
     },
     RoundClosed {
         round: u64,
@@ -144,12 +188,13 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
         capabilities: trainer.capabilities(),
     })
     .await?;
-    let (client_id, max_frame_bytes) = match link.recv().await? {
+    let (client_id, max_frame_bytes, session) = match link.recv().await? {
         ServerMessage::Welcome {
             client_id,
             max_frame_bytes,
+            session,
             ..
-        } => (client_id, max_frame_bytes as usize),
+        } => (client_id, max_frame_bytes as usize, session),
         ServerMessage::Error { code, message } => {
             return Err(ClientError::Refused { code, message });
         }
@@ -189,6 +234,32 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                     })
                     .await?;
                 }
+                if let Some(request) = &task.rollout {
+                    let outputs = trainer.rollout(request).await.map_err(ClientError::Trainer)?;
+                    let mut episodes = Vec::with_capacity(outputs.len());
+                    for RolloutOutput { mut episode, video } in outputs {
+                        if let Some(video) = video {
+                            episode.video = Some(video.file_name.clone());
+                            link.bytes_up += video.bytes.len() as u64;
+                            link.transport
+                                .upload_video(task.round, &session, video)
+                                .await
+                                .map_err(ClientError::Transport)?;
+                        }
+                        episodes.push(episode);
+                    }
+                    on_event(ClientEvent::RolledOut {
+                        round: task.round,
+                        episodes: episodes.len() as u32,
+                        successes: episodes.iter().filter(|e| e.success).count() as u32,
+                    });
+                    link.send(&ClientMessage::RolloutResult {
+                        round: task.round,
+                        model_version: task.model_version,
+                        episodes,
+                    })
+                    .await?;
+                }
                 let out = trainer.train(&task).await.map_err(ClientError::Trainer)?;
                 on_event(ClientEvent::Trained {
                     round: task.round,
@@ -213,6 +284,8 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 on_event(ClientEvent::Uploaded {
                     round: task.round,
                     bytes: link.bytes_up - bytes_before,
+                    total_up: link.bytes_up,
+                    total_down: link.bytes_down,
                 });
                 let seconds = link.transport.now_seconds() - start;
                 let metrics = RoundMetrics {

@@ -13,14 +13,14 @@ pub mod tensors;
 
 pub use client::{
     ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput,
-    LocalTrainer, TrainOutput, run_client,
+    LocalTrainer, RolloutOutput, TrainOutput, Video, run_client,
 };
 pub use codec::{Reassembler, UpdateLimits};
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator};
 pub use protocol::{
-    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RoundMetrics, RoundTask,
-    ServerMessage, StrategyParams,
+    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest,
+    RoundMetrics, RoundTask, ServerMessage, StrategyParams, VolunteerSetup,
 };
 pub use strategy::{FedAvg, Strategy};
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

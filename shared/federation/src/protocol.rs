@@ -3,7 +3,8 @@
 use serde::{Deserialize, Serialize};
 
 /// Bumped on any incompatible change to the control messages or the binary update format.
-pub const PROTOCOL_VERSION: u16 = 1;
+/// 2: volunteer setup, sessions for uploads, rollout requests and results.
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// What a client runs on, so the server can plan tasks.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -49,12 +50,39 @@ pub enum ClientMessage {
         payload_bytes: u64,
     },
     Metrics(RoundMetrics),
+    /// Sim rollouts of the global model the task started from, when the task asked for them. Each episode's
+    /// video was uploaded over HTTP before this message.
+    RolloutResult {
+        round: u64,
+        model_version: u64,
+        episodes: Vec<RolloutEpisode>,
+    },
     /// Loss on the client's own held-out split, when the task asked for it.
     EvalResult {
         round: u64,
         examples: u64,
         loss: f64,
     },
+}
+
+/// One seeded sim episode rolled out by a client.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RolloutEpisode {
+    pub episode: u32,
+    pub seed: u64,
+    pub success: bool,
+    /// Frames executed (30 fps) until success or the budget.
+    pub length: u32,
+    /// File name the video was uploaded under (`POST /rollout/{round}/{file}`), if one was recorded.
+    pub video: Option<String>,
+}
+
+/// Sim rollouts a task asks for: `episodes` episodes from seeds `first_seed..`, each at most `max_frames`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RolloutRequest {
+    pub episodes: u32,
+    pub first_seed: u64,
+    pub max_frames: u32,
 }
 
 /// Parameters the strategy hands to clients (e.g. FedProx's proximal term).
@@ -81,6 +109,33 @@ pub struct RoundTask {
     pub deadline_ms: u64,
     /// Whether the client should also report [`ClientMessage::EvalResult`].
     pub eval_request: bool,
+    /// Sim rollouts of the task's starting model to report with [`ClientMessage::RolloutResult`].
+    pub rollout: Option<RolloutRequest>,
+}
+
+/// What a volunteer downloads before it joins (`GET /api/volunteer`): its shard, the policy and the frozen
+/// weights. Everything is versioned so browsers can cache it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VolunteerSetup {
+    pub protocol_version: u16,
+    /// "smolvla" or "linreg".
+    pub workload: String,
+    /// The shard this volunteer should train on (assigned round-robin), of `shard_count`.
+    pub shard_index: u32,
+    pub shard_count: u32,
+    /// `GET` paths of the shard and its manifest (size and SHA-256).
+    pub shard_url: String,
+    pub shard_manifest_url: String,
+    /// The policy: `{"policy": <LeRobot config.json>, "vlm": <vlm/config.json>}`; null for linreg.
+    pub policy: serde_json::Value,
+    /// `GET` path of the frozen tensors (safetensors), named by their content hash so caches never go stale.
+    pub frozen_url: Option<String>,
+    pub frozen_bytes: u64,
+    /// The sim task's token ids and mask for rollouts (the shard carries the training tasks' ids).
+    pub rollout_task_tokens: Vec<u32>,
+    pub rollout_task_mask: Vec<bool>,
+    /// The global model version at the time of the request.
+    pub model_version: u64,
 }
 
 /// Why the server refused something.
@@ -139,6 +194,8 @@ pub enum ServerMessage {
         protocol_version: u16,
         /// Largest binary frame the server accepts; updates are chunked to fit.
         max_frame_bytes: u32,
+        /// Bearer token for this connection's HTTP uploads (rollout videos).
+        session: String,
     },
     RoundTask(RoundTask),
     Error {
@@ -175,7 +232,7 @@ mod tests {
         };
         let json = serde_json::to_string(&join).unwrap();
         assert!(
-            json.starts_with(r#"{"type":"join","protocol_version":1"#),
+            json.starts_with(&format!(r#"{{"type":"join","protocol_version":{PROTOCOL_VERSION}"#)),
             "{json}"
         );
         assert_eq!(serde_json::from_str::<ClientMessage>(&json).unwrap(), join);

@@ -8,6 +8,7 @@ pub mod heldout;
 pub mod rollout;
 pub mod tensors;
 pub mod trainer;
+pub mod volunteer;
 
 pub use evaluator::HeldOutEvaluator;
 pub use examples::ShardExamples;

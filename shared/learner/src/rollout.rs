@@ -21,12 +21,15 @@ fn camera_for(key: &str, slot: usize) -> Result<Camera, PolicyError> {
         .ok_or_else(|| PolicyError::Input(format!("policy camera {key} has no simulated counterpart (the sim has top and wrist)")))
 }
 
+/// A task tokenised as the policy reads it: `(ids, mask, padded length)`.
+pub type TaskTokens = (Vec<i64>, Vec<bool>, usize);
+
 /// A policy ready to act in the sim.
 pub struct SimPolicy {
     model: SmolVla,
     stats: NormStats,
     cameras: Vec<(Camera, usize, usize)>,
-    tokens: (Vec<i64>, Vec<bool>, usize),
+    tokens: TaskTokens,
     device: Device,
 }
 
@@ -34,8 +37,15 @@ impl SimPolicy {
     /// `weights` holds every tensor of `cfg`; the policy is tokenised once for the sim's task.
     pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, stats: NormStats, tokenizer: &Tokenizer, device: &Device) -> Result<Self, PolicyError> {
         fedvla_policy::weights::check_keys(&cfg.param_specs(), weights, "rollout policy")?;
+        let tokens = tokenizer.encode_batch(&[TASK], cfg.tokenizer_max_length, cfg.pad_language_to == "max_length")?;
         let store = ParamStore::upload(weights.iter(), device, false);
-        let cameras = cfg
+        Self::from_model(SmolVla::new(cfg, &store, &store), stats, tokens)
+    }
+
+    /// A model already on its device (without autodiff) as a sim policy, with the sim's task tokenised.
+    pub fn from_model(model: SmolVla, stats: NormStats, tokens: TaskTokens) -> Result<Self, PolicyError> {
+        let cameras = model
+            .cfg
             .input_features
             .iter()
             .filter(|f| f.kind == "VISUAL")
@@ -45,8 +55,8 @@ impl SimPolicy {
                 camera_for(&f.name, slot).map(|c| (c, h, w))
             })
             .collect::<Result<_, _>>()?;
-        let tokens = tokenizer.encode_batch(&[TASK], cfg.tokenizer_max_length, cfg.pad_language_to == "max_length")?;
-        Ok(Self { model: SmolVla::new(cfg, &store, &store), stats, cameras, tokens, device: device.clone() })
+        let device = model.device();
+        Ok(Self { model, stats, cameras, tokens, device })
     }
 
     /// Camera images of the current scene as the policy sees them (`[1, 3, H, W]` in [0, 1]).
@@ -98,6 +108,54 @@ pub struct EpisodeResult {
     pub length: usize,
 }
 
+/// An episode in progress: the scene and the queue of actions left from the last chunk.
+pub struct Episode<'a> {
+    policy: &'a SimPolicy,
+    scene: Scene,
+    rng: StdRng,
+    queue: std::vec::IntoIter<[f32; JOINT_COUNT]>,
+    seed: u64,
+    length: usize,
+    max_frames: usize,
+}
+
+impl<'a> Episode<'a> {
+    /// The episode on `Scene::new(seed)`, at most `max_frames` frames long.
+    pub fn new(policy: &'a SimPolicy, seed: u64, max_frames: usize) -> Self {
+        let rng = StdRng::seed_from_u64(seed ^ 0x5eed_0f_a11);
+        Self { policy, scene: Scene::new(seed), rng, queue: Vec::new().into_iter(), seed, length: 0, max_frames }
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    pub fn is_over(&self) -> bool {
+        self.length >= self.max_frames || self.scene.success()
+    }
+
+    /// Executes one frame (sampling a new chunk when the last one is used up); false once the episode is over.
+    pub fn step(&mut self) -> Result<bool, PolicyError> {
+        if self.is_over() {
+            return Ok(false);
+        }
+        let action = match self.queue.next() {
+            Some(action) => action,
+            None => {
+                self.queue = self.policy.act(&self.scene, &mut self.rng)?.into_iter();
+                self.queue.next().ok_or_else(|| PolicyError::Input("the policy returned an empty action chunk".into()))?
+            }
+        };
+        self.scene.step(action);
+        self.length += 1;
+        Ok(true)
+    }
+
+    pub fn result(&self) -> EpisodeResult {
+        EpisodeResult { seed: self.seed, success: self.scene.success(), length: self.length }
+    }
+}
+
 /// Rolls the policy out from `Scene::new(seed)` for at most `max_frames` frames. `on_frame` sees
 /// the scene after every step (to film it).
 pub fn run_episode(
@@ -106,19 +164,10 @@ pub fn run_episode(
     max_frames: usize,
     mut on_frame: impl FnMut(&Scene),
 ) -> Result<EpisodeResult, PolicyError> {
-    let mut scene = Scene::new(seed);
-    let mut rng = StdRng::seed_from_u64(seed ^ 0x5eed_0f_a11);
-    on_frame(&scene);
-    let mut length = 0;
-    while length < max_frames && !scene.success() {
-        for action in policy.act(&scene, &mut rng)? {
-            scene.step(action);
-            length += 1;
-            on_frame(&scene);
-            if length >= max_frames || scene.success() {
-                break;
-            }
-        }
+    let mut episode = Episode::new(policy, seed, max_frames);
+    on_frame(episode.scene());
+    while episode.step()? {
+        on_frame(episode.scene());
     }
-    Ok(EpisodeResult { seed, success: scene.success(), length })
+    Ok(episode.result())
 }

@@ -3,22 +3,37 @@
 //! the browser; only the burn device differs.
 
 use burn::tensor::Device;
-use fedvla_federation::{BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RoundTask, TrainOutput};
-use fedvla_policy::{SmolVlaConfig, Trainer, WeightMap};
+use fedvla_federation::{BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutEpisode, RolloutOutput, RolloutRequest, RoundTask, TrainOutput};
+use fedvla_policy::weights::ParamStore;
+use fedvla_policy::{SmolVla, SmolVlaConfig, Trainer, WeightMap};
+use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
-use rand::SeedableRng;
 
 use crate::examples::ShardExamples;
 use crate::heldout::{HeldOut, heldout_metrics};
+use crate::rollout::{Episode, SimPolicy, TaskTokens};
 use crate::tensors::{to_named, to_weights};
+
+/// Where a round's local training stands, after each step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepProgress {
+    pub step: u32,
+    pub steps: u32,
+    pub loss: f32,
+}
 
 /// A client's trainer over its shard.
 pub struct SmolVlaTrainer {
     trainer: Trainer,
+    /// The global model on the CPU without autodiff, for held-out evaluation and rollouts: it needs no reads
+    /// from the training device (which a browser's GPU could only do asynchronously) and no graph.
+    global_cpu: SmolVla,
     examples: ShardExamples,
     held_out: HeldOut,
     backend: String,
+    /// The sim task's tokens; without them the client does not roll out.
+    rollout_tokens: Option<TaskTokens>,
 }
 
 impl SmolVlaTrainer {
@@ -26,25 +41,30 @@ impl SmolVlaTrainer {
     /// flow-matching noise and times; `backend` names the device for the server's client table.
     pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, examples: ShardExamples, seed: u64, device: &Device, backend: &str) -> Result<Self, BoxError> {
         let trainer = Trainer::new(cfg, weights, device, seed)?;
+        let store = ParamStore::upload(weights.iter(), &Device::flex(), false);
         let held_out = HeldOut::new(&examples.held_out_rows);
-        Ok(Self { trainer, examples, held_out, backend: backend.into() })
-    }
-}
-
-impl LocalTrainer for SmolVlaTrainer {
-    fn capabilities(&self) -> Capabilities {
-        let params: usize = self.trainer.model.cfg.param_specs().iter().map(|s| s.numel()).sum();
-        Capabilities { backend: self.backend.clone(), memory_bytes: (params * 4) as u64 }
+        Ok(Self { trainer, global_cpu: SmolVla::new(cfg, &store, &store), examples, held_out, backend: backend.into(), rollout_tokens: None })
     }
 
-    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
-        self.trainer.set_trainable_weights(&to_weights(global))?;
-        Ok(())
+    /// Lets this client roll the global model out in the sim when a task asks.
+    pub fn with_rollouts(mut self, tokens: TaskTokens) -> Self {
+        self.rollout_tokens = Some(tokens);
+        self
     }
 
-    /// `local_steps` AdamW steps on batches drawn (seeded by the task) from the training rows,
-    /// each row visited once per pass.
-    async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+    pub fn config(&self) -> &SmolVlaConfig {
+        &self.trainer.model.cfg
+    }
+
+    /// The global model last set, as a sim policy on the CPU; `None` without the sim task's tokens.
+    pub fn sim_policy(&self) -> Result<Option<SimPolicy>, BoxError> {
+        let Some(tokens) = &self.rollout_tokens else { return Ok(None) };
+        Ok(Some(SimPolicy::from_model(self.global_cpu.clone(), self.examples.stats().clone(), tokens.clone())?))
+    }
+
+    /// [`LocalTrainer::train`], awaiting `after_step` after every step (the browser redraws its progress and
+    /// yields to the page there).
+    pub async fn train_with(&mut self, task: &RoundTask, mut after_step: impl AsyncFnMut(StepProgress)) -> Result<TrainOutput, BoxError> {
         let rows = &self.examples.train_rows;
         if rows.is_empty() {
             return Err("this client's shard has no training episodes".into());
@@ -55,7 +75,7 @@ impl LocalTrainer for SmolVlaTrainer {
         let mut order = rows.clone();
         let mut cursor = order.len();
         let mut loss_sum = 0.0;
-        for _ in 0..task.local_steps {
+        for step in 0..task.local_steps {
             let mut picked = Vec::with_capacity(batch_size);
             while picked.len() < batch_size {
                 if cursor == order.len() {
@@ -66,17 +86,57 @@ impl LocalTrainer for SmolVlaTrainer {
                 cursor += 1;
             }
             let batch = self.examples.batch(&picked, chunk)?;
-            loss_sum += self.trainer.train_step(&batch, task.lr)?.loss as f64;
+            let loss = self.trainer.train_step_async(&batch, task.lr).await?.loss;
+            loss_sum += loss as f64;
+            after_step(StepProgress { step: step + 1, steps: task.local_steps, loss }).await;
         }
         Ok(TrainOutput {
-            update: to_named(&self.trainer.trainable_weights())?,
+            update: to_named(&self.trainer.trainable_weights_async().await?)?,
             examples: rows.len() as u64,
             train_loss: loss_sum / task.local_steps.max(1) as f64,
         })
     }
+}
+
+impl LocalTrainer for SmolVlaTrainer {
+    fn capabilities(&self) -> Capabilities {
+        let params: usize = self.trainer.model.cfg.param_specs().iter().map(|s| s.numel()).sum();
+        Capabilities { backend: self.backend.clone(), memory_bytes: (params * 4) as u64 }
+    }
+
+    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
+        let weights = to_weights(global);
+        self.trainer.set_trainable_weights(&weights)?;
+        self.global_cpu = self.global_cpu.with_trainable(&ParamStore::upload(weights.iter(), &Device::flex(), false));
+        Ok(())
+    }
+
+    /// `local_steps` AdamW steps on batches drawn (seeded by the task) from the training rows,
+    /// each row visited once per pass.
+    async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        self.train_with(task, async |_| {}).await
+    }
 
     async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
-        let metrics = heldout_metrics(&self.trainer.model, &self.examples, &self.held_out)?;
+        let metrics = heldout_metrics(&self.global_cpu, &self.examples, &self.held_out)?;
         Ok(EvalOutput { examples: self.held_out.rows.len() as u64, loss: metrics.loss })
     }
+
+    /// Unfilmed rollouts on the CPU (the browser films its own, see client-wasm).
+    async fn rollout(&mut self, request: &RolloutRequest) -> Result<Vec<RolloutOutput>, BoxError> {
+        let Some(policy) = self.sim_policy()? else { return Ok(Vec::new()) };
+        (0..request.episodes)
+            .map(|episode| {
+                let mut run = Episode::new(&policy, request.first_seed + episode as u64, request.max_frames as usize);
+                while run.step()? {}
+                Ok(RolloutOutput { episode: rollout_episode(episode, &run), video: None })
+            })
+            .collect()
+    }
+}
+
+/// The protocol's record of a finished episode (its video is filled in by whoever filmed it).
+pub fn rollout_episode(episode: u32, run: &Episode) -> RolloutEpisode {
+    let result = run.result();
+    RolloutEpisode { episode, seed: result.seed, success: result.success, length: result.length as u32, video: None }
 }

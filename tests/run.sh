@@ -1,10 +1,14 @@
 #!/usr/bin/env bash
-# The project's test command (README "Run the tests"): every crate's tests natively, then the
-# shared crates built for the browser target.
+# The project's test command (README "Run the tests"): the browser volunteer built for wasm32 and its units run
+# in headless Chromium, then every crate's tests natively, the browser end-to-end tests included (they need
+# Debian's chromium and chromium-driver and the wasm-bindgen CLI of Cargo.lock's version: .ci/run installs them).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-cargo test --workspace --locked
-# shared/ must build for wasm32 (the browser client); dataset file I/O stays native-only.
-cargo check --locked --target wasm32-unknown-unknown \
-  -p fedvla-policy -p fedvla-sim -p fedvla-federation -p fedvla-learner -p fedvla-data --no-default-features
+# The wasm volunteer into www/pkg, which the server serves and the browser tests load.
+bash client-wasm/build.sh
+# The wasm units (codec, sim, SmolVLA training on the CPU backend and on WebGPU) in a real Chromium.
+CHROMEDRIVER="${CHROMEDRIVER:-/usr/bin/chromedriver}" WASM_BINDGEN_TEST_TIMEOUT=600 \
+  wasm-pack test --release --headless --chrome client-wasm
+# Everything native; a missing browser is a failure here, not a skip.
+FEDVLA_REQUIRE_BROWSER=1 cargo test --workspace --locked

@@ -1,0 +1,80 @@
+//! The browser's `ClientTransport`: the federation WebSocket through gloo-net, models and uploads through fetch.
+
+use fedvla_federation::{BoxError, ClientTransport, Video};
+use futures_util::stream::{SplitSink, SplitStream};
+use futures_util::{SinkExt, StreamExt};
+use gloo_net::websocket::Message;
+use gloo_net::websocket::futures::WebSocket;
+
+use crate::browser::now_seconds;
+use crate::download::fetch_with_progress;
+
+pub struct BrowserTransport {
+    sink: SplitSink<WebSocket, Message>,
+    stream: SplitStream<WebSocket>,
+    /// e.g. "http://127.0.0.1:8080"; HTTP paths are relative to it.
+    origin: String,
+}
+
+impl BrowserTransport {
+    /// Opens `ws(s)://<host>/ws` of the server at `origin` (http or https).
+    pub fn connect(origin: &str) -> Result<Self, BoxError> {
+        let ws_url = match origin.split_once("://") {
+            Some(("https", rest)) => format!("wss://{rest}/ws"),
+            Some(("http", rest)) => format!("ws://{rest}/ws"),
+            _ => return Err(format!("server origin {origin:?} is not http(s)://host:port").into()),
+        };
+        let socket = WebSocket::open(&ws_url).map_err(|e| format!("opening {ws_url}: {e}"))?;
+        let (sink, stream) = socket.split();
+        Ok(Self { sink, stream, origin: origin.trim_end_matches('/').to_owned() })
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.origin)
+    }
+}
+
+impl ClientTransport for BrowserTransport {
+    async fn send_text(&mut self, text: String) -> Result<(), BoxError> {
+        self.sink.send(Message::Text(text)).await.map_err(|e| e.to_string().into())
+    }
+
+    async fn send_binary(&mut self, frame: Vec<u8>) -> Result<(), BoxError> {
+        self.sink.send(Message::Bytes(frame)).await.map_err(|e| e.to_string().into())
+    }
+
+    async fn recv_text(&mut self) -> Result<Option<String>, BoxError> {
+        match self.stream.next().await {
+            Some(Ok(Message::Text(text))) => Ok(Some(text)),
+            Some(Ok(Message::Bytes(_))) => Err("the server sent an unexpected binary frame".into()),
+            // gloo-net reports a closed socket as an error; both mean the connection is over.
+            Some(Err(gloo_net::websocket::WebSocketError::ConnectionClose(_))) | None => Ok(None),
+            Some(Err(e)) => Err(e.to_string().into()),
+        }
+    }
+
+    async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
+        fetch_with_progress(&self.url(&format!("/model/{version}")), |_, _| {}).await.map_err(|e| format!("{e:?}").into())
+    }
+
+    async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
+        let url = self.url(&format!("/rollout/{round}/{}", video.file_name));
+        let body = js_sys::Uint8Array::from(video.bytes.as_slice());
+        let response = gloo_net::http::Request::post(&url)
+            .header("authorization", &format!("Bearer {session}"))
+            .header("content-type", &video.mime)
+            .body(body)
+            .map_err(|e| e.to_string())?
+            .send()
+            .await
+            .map_err(|e| format!("POST {url}: {e}"))?;
+        if !response.ok() {
+            return Err(format!("POST {url}: {} {}", response.status(), response.text().await.unwrap_or_default()).into());
+        }
+        Ok(())
+    }
+
+    fn now_seconds(&self) -> f64 {
+        now_seconds()
+    }
+}

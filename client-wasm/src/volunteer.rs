@@ -1,0 +1,217 @@
+//! `run_volunteer`, the page's entry point: download what the server offers (cached by version), build the
+//! SmolVLA trainer, join over the WebSocket and run the shared round loop until the run finishes or the
+//! connection drops (the page then reconnects).
+
+use std::path::Path;
+
+use burn::tensor::Device;
+use fedvla_data::ShardFileManifest;
+use fedvla_data::shard::verify_shard_bytes;
+use fedvla_federation::{
+    BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, LocalTrainer, NamedTensors, PROTOCOL_VERSION, RolloutOutput,
+    RolloutRequest, RoundTask, TrainOutput, VolunteerSetup, run_client,
+};
+use fedvla_learner::SmolVlaTrainer;
+use fedvla_learner::rollout::Episode;
+use fedvla_learner::trainer::rollout_episode;
+use fedvla_learner::volunteer::{Downloads, volunteer_trainer};
+use serde_json::json;
+use wasm_bindgen::prelude::*;
+use web_sys::HtmlCanvasElement;
+
+use crate::browser::{js_error, now_seconds, sleep_ms, yield_to_page};
+use crate::download::{Source, cached, fetch_with_progress};
+use crate::film::{CanvasView, Recorder};
+use crate::status::StatusSink;
+use crate::transport::BrowserTransport;
+
+thread_local! {
+    /// The page's WebGPU device, or why there is none: burn's wgpu runtime can be initialised only once.
+    static WEBGPU: std::cell::RefCell<Option<Result<Device, String>>> = const { std::cell::RefCell::new(None) };
+}
+
+/// The page's WebGPU adapter as a burn device. The runtime asks the adapter for its own limits (storage buffer
+/// sizes included), not WebGPU's defaults.
+pub async fn webgpu_device() -> Result<Device, String> {
+    if let Some(known) = WEBGPU.with_borrow(Clone::clone) {
+        return known;
+    }
+    let result = Device::wgpu_options().init_async().await.map_err(|e| e.to_string());
+    WEBGPU.with_borrow_mut(|slot| *slot = Some(result.clone()));
+    result
+}
+
+/// The training device (WebGPU when the browser gives an adapter, else burn's CPU backend in wasm), with the
+/// name the server's client table and the page show.
+async fn training_device(status: &StatusSink) -> (Device, String) {
+    match webgpu_device().await {
+        Ok(device) => (device.autodiff(), "webgpu".to_owned()),
+        Err(reason) => {
+            status.send("fallback", json!({ "reason": reason }));
+            (Device::flex().autodiff(), "wasm-cpu (burn flex)".to_owned())
+        }
+    }
+}
+
+/// Rollout frames per second (the sim's control rate) and each camera's size on the canvas and in the video.
+const ROLLOUT_FPS: f64 = 30.0;
+const ROLLOUT_VIEW_SIZE: usize = 128;
+
+fn boxed(e: JsValue) -> BoxError {
+    e.as_string().or_else(|| js_sys::Error::from(e).message().as_string()).unwrap_or_else(|| "JavaScript error".into()).into()
+}
+
+/// Joins the federation served at `origin` as `name`, drawing rollouts on `canvas` and reporting every change to
+/// `on_status` (one JSON string per call). Resolves with the run's summary when the server finishes the run;
+/// rejects with a message when anything fails (the page shows it and reconnects).
+#[wasm_bindgen]
+pub async fn run_volunteer(origin: String, name: String, canvas: HtmlCanvasElement, on_status: js_sys::Function) -> Result<JsValue, JsValue> {
+    let status = StatusSink::new(on_status);
+    let started = now_seconds();
+    let mut trainer = prepare(&origin, &name, canvas, &status).await.map_err(|e| js_error(format!("{e}")))?;
+    trainer.started = started;
+    let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
+    let options = ClientOptions { name: name.clone(), auth_token: None };
+    let sink = status.clone();
+    let summary = run_client(&mut transport, &mut trainer, &options, move |event| report(&sink, event))
+        .await
+        .map_err(|e| js_error(format!("{e}")))?;
+    let summary = json!({
+        "client_id": summary.client_id,
+        "rounds_trained": summary.rounds_trained,
+        "bytes_up": summary.bytes_up,
+        "bytes_down": summary.bytes_down,
+    });
+    status.send("finished", summary.clone());
+    Ok(JsValue::from_str(&summary.to_string()))
+}
+
+/// Downloads the setup, the frozen weights, the shard and the global model, and builds the trainer.
+async fn prepare(origin: &str, name: &str, canvas: HtmlCanvasElement, status: &StatusSink) -> Result<BrowserTrainer, BoxError> {
+    let get = |path: &str| format!("{}{path}", origin.trim_end_matches('/'));
+    status.send("stage", json!({ "stage": "setup" }));
+    let setup: VolunteerSetup = serde_json::from_slice(&fetch_with_progress(&get("/api/volunteer"), |_, _| {}).await.map_err(boxed)?)?;
+    if setup.protocol_version != PROTOCOL_VERSION {
+        return Err(format!("the server speaks protocol {}, this page {PROTOCOL_VERSION}: reload the page", setup.protocol_version).into());
+    }
+    if setup.workload != "smolvla" {
+        return Err(format!("the server runs the {:?} workload; browsers train SmolVLA only", setup.workload).into());
+    }
+    status.send("setup", json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version }));
+    let download = async |what: &str, url: &str, key: &str| -> Result<Vec<u8>, BoxError> {
+        let (bytes, source) = cached(&get(url), key, |received, total| {
+            status.send("download", json!({ "what": what, "received": received, "total": total }));
+        })
+        .await
+        .map_err(boxed)?;
+        status.send("downloaded", json!({ "what": what, "bytes": bytes.len(), "cached": source == Source::Cache }));
+        Ok(bytes)
+    };
+    let frozen_url = setup.frozen_url.clone().ok_or("the server offers no frozen weights")?;
+    let frozen = download("frozen weights", &frozen_url, &frozen_url).await?;
+    let manifest: ShardFileManifest =
+        serde_json::from_slice(&fetch_with_progress(&get(&setup.shard_manifest_url), |_, _| {}).await.map_err(boxed)?)?;
+    let shard = download("shard", &setup.shard_url, &format!("/shard/sha256/{}", manifest.file_sha256)).await?;
+    verify_shard_bytes(Path::new(&manifest.file), &shard, &manifest)?;
+    let global = download("global model", &format!("/model/{}", setup.model_version), &format!("/model/{}", setup.model_version)).await?;
+    status.send("stage", json!({ "stage": "building the model" }));
+    yield_to_page().await;
+    let downloads = Downloads { setup: &setup, frozen: &frozen, global: &global, shard: &shard, manifest: &manifest };
+    let (device, backend) = training_device(status).await;
+    status.send("device", json!({ "backend": backend }));
+    let inner = volunteer_trainer(&downloads, name, &device, &backend)?;
+    let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;
+    Ok(BrowserTrainer { inner, status: status.clone(), view, started: 0.0, first_step_reported: false })
+}
+
+/// The shared SmolVLA trainer with the page's progress and an in-page, filmed sim.
+struct BrowserTrainer {
+    inner: SmolVlaTrainer,
+    status: StatusSink,
+    view: CanvasView,
+    /// When `run_volunteer` started, for the time-to-first-step figure.
+    started: f64,
+    first_step_reported: bool,
+}
+
+impl LocalTrainer for BrowserTrainer {
+    fn capabilities(&self) -> Capabilities {
+        self.inner.capabilities()
+    }
+
+    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
+        self.inner.set_global(global)
+    }
+
+    async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        let (status, round, started) = (&self.status, task.round, self.started);
+        let first_step_reported = &mut self.first_step_reported;
+        let mut last = now_seconds();
+        self.inner
+            .train_with(task, async |p| {
+                let now = now_seconds();
+                let mut fields = json!({ "round": round, "step": p.step, "steps": p.steps, "loss": p.loss, "step_seconds": now - last });
+                if !*first_step_reported {
+                    fields["first_step_seconds"] = json!(now - started);
+                    *first_step_reported = true;
+                }
+                last = now;
+                status.send("step", fields);
+                yield_to_page().await;
+            })
+            .await
+    }
+
+    async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
+        self.status.send("stage", json!({ "stage": "evaluating on the held-out episodes" }));
+        yield_to_page().await;
+        self.inner.evaluate().await
+    }
+
+    /// Each episode drawn on the canvas at the sim's 30 fps and recorded as WebM.
+    async fn rollout(&mut self, request: &RolloutRequest) -> Result<Vec<RolloutOutput>, BoxError> {
+        let Some(policy) = self.inner.sim_policy()? else { return Ok(Vec::new()) };
+        let mut outputs = Vec::new();
+        for episode in 0..request.episodes {
+            let mut run = Episode::new(&policy, request.first_seed + u64::from(episode), request.max_frames as usize);
+            self.view.draw(run.scene()).map_err(boxed)?;
+            let recorder = Recorder::start(&self.view, ROLLOUT_FPS).map_err(boxed)?;
+            let start = now_seconds();
+            let mut frame = 0u32;
+            while run.step()? {
+                frame += 1;
+                self.view.draw(run.scene()).map_err(boxed)?;
+                if frame % 10 == 0 {
+                    self.status.send("rollout", json!({ "episode": episode, "episodes": request.episodes, "frame": frame, "max_frames": request.max_frames }));
+                }
+                // Real time, so the recording plays at the sim's speed.
+                let due = start + f64::from(frame) / ROLLOUT_FPS;
+                sleep_ms(((due - now_seconds()) * 1000.0).max(0.0) as i32).await;
+            }
+            let video = recorder.finish(format!("episode_{episode}.webm")).await.map_err(boxed)?;
+            let record = rollout_episode(episode, &run);
+            self.status.send("rolled_out", json!({ "episode": episode, "success": record.success, "length": record.length, "video_bytes": video.bytes.len() }));
+            outputs.push(RolloutOutput { episode: record, video: Some(video) });
+        }
+        Ok(outputs)
+    }
+}
+
+/// The round loop's events as page status.
+fn report(status: &StatusSink, event: ClientEvent) {
+    match event {
+        ClientEvent::Joined { client_id } => status.send("joined", json!({ "client_id": client_id })),
+        ClientEvent::Task { round, local_steps } => status.send("task", json!({ "round": round, "local_steps": local_steps })),
+        ClientEvent::Trained { round, examples, train_loss } => {
+            status.send("trained", json!({ "round": round, "examples": examples, "train_loss": train_loss }))
+        }
+        ClientEvent::Uploaded { round, bytes, total_up, total_down } => {
+            status.send("uploaded", json!({ "round": round, "bytes": bytes, "total_up": total_up, "total_down": total_down }))
+        }
+        ClientEvent::RolledOut { round, episodes, successes } => {
+            status.send("rollouts", json!({ "round": round, "episodes": episodes, "successes": successes }))
+        }
+        ClientEvent::RoundClosed { round, accepted } => status.send("round_closed", json!({ "round": round, "accepted": accepted })),
+        ClientEvent::Refused { code, message } => status.send("refused", json!({ "code": code.as_str(), "message": message })),
+    }
+}

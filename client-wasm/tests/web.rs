@@ -1,0 +1,102 @@
+//! The wasm units in a real headless Chromium (`wasm-pack test --headless --chrome client-wasm`): the protocol
+//! codec, the SO-100 sim and its renderer, and SmolVLA training steps on the CPU backend in wasm and on the
+//! browser's WebGPU adapter. Chromium runs with `--enable-unsafe-webgpu` (webdriver.json); on a machine without a
+//! GPU its adapter is SwiftShader, slow, so the WebGPU test trains two steps of the tiny model at batch 1.
+#![cfg(target_arch = "wasm32")]
+
+use burn::tensor::Device;
+use fedvla_federation::codec::{decode_payload, encode_frames, encode_payload};
+use fedvla_federation::{NamedTensors, Reassembler, UpdateLimits};
+use fedvla_policy::weights::init_random;
+use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
+use fedvla_sim::{Camera, Expert, Scene, render};
+use wasm_bindgen_test::*;
+
+wasm_bindgen_test_configure!(run_in_browser);
+
+#[wasm_bindgen_test]
+fn an_update_survives_chunking_and_reassembly_in_wasm() {
+    let mut update = NamedTensors::new();
+    update.insert("model.action_out_proj.weight", vec![3, 4], (0..12).map(|i| i as f32 * 0.5 - 2.0).collect()).unwrap();
+    update.insert("model.state_proj.bias", vec![4], vec![1.0, -1.0, f32::MIN_POSITIVE, 3.5]).unwrap();
+    let spec = update.spec();
+    let payload = encode_payload(&update);
+    let frames = encode_frames(&payload, 7, 64);
+    assert!(frames.len() > 1, "a 64-byte frame limit splits the update");
+    let limits = UpdateLimits::for_spec(&spec, 64, 0);
+    let mut reassembler = Reassembler::start(&frames[0], limits).unwrap();
+    for frame in &frames[1..] {
+        reassembler.push(frame).unwrap();
+    }
+    assert!(reassembler.is_complete());
+    assert_eq!(reassembler.header().round, 7);
+    assert_eq!(decode_payload(&reassembler.finish().unwrap(), &spec).unwrap(), update);
+}
+
+#[wasm_bindgen_test]
+fn the_sim_steps_the_expert_and_renders_both_cameras_in_wasm() {
+    let mut scene = Scene::new(3);
+    let start = scene.state();
+    let mut expert = Expert::new(&scene);
+    for _ in 0..60 {
+        scene.step(expert.act(&scene));
+    }
+    assert_ne!(scene.state(), start, "the arm moved");
+    for camera in Camera::ALL {
+        let rgb = render(&scene, camera, 64, 64);
+        assert_eq!(rgb.len(), 64 * 64 * 3);
+        let mean = rgb.iter().map(|&v| f64::from(v)).sum::<f64>() / rgb.len() as f64;
+        let variance = rgb.iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / rgb.len() as f64;
+        assert!(variance > 100.0, "{} camera frame is not blank (variance {variance})", camera.name());
+    }
+}
+
+#[wasm_bindgen_test]
+fn tiny_smolvla_trains_on_the_cpu_backend_in_wasm() {
+    let cfg = SmolVlaConfig::tiny();
+    let weights = init_random(&cfg.param_specs(), 1);
+    let mut trainer = Trainer::new(&cfg, &weights, &Device::flex().autodiff(), 5).unwrap();
+    let batch = Batch::random(&cfg, 2, 11);
+    let (noise, time) = trainer.sample_noise_and_time(2);
+    let mut losses = Vec::new();
+    for _ in 0..5 {
+        let (report, _) = trainer.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
+        assert!(report.loss.is_finite() && report.grad_norm.is_finite(), "{report:?}");
+        losses.push(report.loss);
+    }
+    assert!(losses[4] < losses[0], "the loss falls on a fixed batch: {losses:?}");
+    let frozen_after = trainer.frozen_weights();
+    for (name, tensor) in &frozen_after {
+        assert_eq!(tensor, &weights[name], "frozen tensor {name} is untouched");
+    }
+}
+
+#[wasm_bindgen_test]
+async fn tiny_smolvla_trains_on_webgpu_as_it_does_on_the_cpu() {
+    let cfg = SmolVlaConfig::tiny();
+    let weights = init_random(&cfg.param_specs(), 1);
+    let batch = Batch::random(&cfg, 1, 11);
+    let gpu = Device::wgpu_options().init_async().await.expect("a WebGPU adapter (Chromium runs with --enable-unsafe-webgpu)");
+    let mut runs = Vec::new();
+    for (name, device) in [("cpu (flex)", Device::flex()), ("webgpu", gpu)] {
+        let mut trainer = Trainer::new(&cfg, &weights, &device.autodiff(), 5).unwrap();
+        let mut losses = Vec::new();
+        for step in 0..2 {
+            let started = js_sys::Date::now();
+            let report = trainer.train_step_async(&batch, 1e-3).await.unwrap();
+            console_log!("{name}: step {step}: loss {:.6}, {:.0} ms", report.loss, js_sys::Date::now() - started);
+            losses.push(report.loss);
+        }
+        runs.push((losses, trainer.trainable_weights_async().await.unwrap()));
+    }
+    let ((cpu_losses, cpu_weights), (gpu_losses, gpu_weights)) = (&runs[0], &runs[1]);
+    for (c, g) in cpu_losses.iter().zip(gpu_losses) {
+        assert!((c - g).abs() <= 1e-3 * c.abs().max(1.0), "losses differ: cpu {cpu_losses:?}, webgpu {gpu_losses:?}");
+    }
+    let worst = cpu_weights
+        .iter()
+        .flat_map(|(k, c)| c.data.iter().zip(&gpu_weights[k].data).map(|(a, b)| (a - b).abs()))
+        .fold(0.0f32, f32::max);
+    console_log!("webgpu vs cpu after 2 steps: worst trainable-weight difference {worst:e}");
+    assert!(worst < 1e-3, "trainable weights after two steps differ by {worst}");
+}

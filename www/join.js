@@ -1,0 +1,130 @@
+// The join page: consent, the Join button, live status drawn from the wasm volunteer's reports, and automatic
+// reconnection (with the cached downloads, a reconnect costs only the WebSocket handshake).
+import init, { run_volunteer } from "./pkg/fedvla_client_wasm.js";
+
+const $ = (id) => document.getElementById(id);
+const RECONNECT_MIN_MS = 1000;
+const RECONNECT_MAX_MS = 15000;
+
+// A stable random name per browser, so a reload rejoins as the same volunteer.
+function volunteerName() {
+  const params = new URLSearchParams(location.search);
+  if (params.get("name")) return params.get("name");
+  let name = localStorage.getItem("fedvla-name");
+  if (!name) {
+    name = "browser-" + Math.random().toString(36).slice(2, 8);
+    localStorage.setItem("fedvla-name", name);
+  }
+  return name;
+}
+
+async function describeWebGpu() {
+  if (!navigator.gpu) return "WebGPU not available in this browser";
+  try {
+    const adapter = await navigator.gpu.requestAdapter();
+    if (!adapter) return "WebGPU refused an adapter";
+    const info = adapter.info || {};
+    const what = [info.vendor, info.architecture, info.description].filter(Boolean).join(" ") || "unnamed adapter";
+    return `WebGPU adapter present (${what}${adapter.isFallbackAdapter ? ", software fallback" : ""})`;
+  } catch (e) {
+    return "WebGPU refused: " + e;
+  }
+}
+
+const fmtBytes = (n) => n >= 1 << 20 ? (n / (1 << 20)).toFixed(1) + " MiB" : n >= 1024 ? (n / 1024).toFixed(1) + " KiB" : n + " B";
+
+const state = { contributions: 0, up: 0, down: 0, gpu: "", reconnectDelay: RECONNECT_MIN_MS };
+
+function show(kind, s) {
+  switch (kind) {
+    case "stage": $("stage").textContent = s.stage; break;
+    case "setup": $("stage").textContent = `assigned shard ${s.shard} of ${s.shards}`; break;
+    case "download":
+      $("stage").textContent = `downloading ${s.what}`;
+      $("progress").max = s.total || 1;
+      $("progress").value = s.total ? s.received : 0;
+      break;
+    case "downloaded":
+      state.down += s.cached ? 0 : s.bytes;
+      $("bytes").textContent = `${fmtBytes(state.up)} / ${fmtBytes(state.down)}`;
+      $("stage").textContent = `${s.what}: ${fmtBytes(s.bytes)}${s.cached ? " (from the browser cache)" : ""}`;
+      break;
+    case "device": $("device").textContent = `${s.backend}; ${state.gpu}`; break;
+    case "fallback": state.gpu += ` (training on the CPU instead: ${s.reason})`; break;
+    case "joined":
+      state.reconnectDelay = RECONNECT_MIN_MS;
+      $("connection").textContent = `joined as client ${s.client_id}`; $("stage").textContent = "waiting for a round"; break;
+    case "task": $("round").textContent = s.round; $("stage").textContent = "round task received"; break;
+    case "step":
+      $("step").textContent = `${s.step} / ${s.steps} (${(s.step_seconds * 1000).toFixed(0)} ms/step)`;
+      $("loss").textContent = s.loss.toFixed(4);
+      $("progress").max = s.steps;
+      $("progress").value = s.step;
+      $("stage").textContent = "training";
+      if (s.first_step_seconds !== undefined) $("first-step").textContent = `${s.first_step_seconds.toFixed(1)} s (downloads, model build and the step)`;
+      break;
+    case "trained": $("loss").textContent = `${s.train_loss.toFixed(4)} (round mean)`; $("stage").textContent = "uploading the update"; break;
+    case "uploaded":
+      state.contributions += 1;
+      state.up = s.total_up;
+      $("contributions").textContent = state.contributions;
+      $("bytes").textContent = `${fmtBytes(s.total_up)} / ${fmtBytes(state.down + s.total_down)}`;
+      $("stage").textContent = `update of round ${s.round} sent (${fmtBytes(s.bytes)})`;
+      break;
+    case "rollout":
+      $("stage").textContent = `sim rollout ${s.episode + 1} of ${s.episodes}`;
+      $("rollout-status").textContent = `episode ${s.episode + 1}: frame ${s.frame} of at most ${s.max_frames}`;
+      break;
+    case "rolled_out":
+      $("rollout-status").textContent = `episode ${s.episode + 1}: ${s.success ? "success" : "no success"} after ${s.length} frames, video ${fmtBytes(s.video_bytes)} uploaded`;
+      break;
+    case "round_closed": $("stage").textContent = `round ${s.round} ${s.accepted ? "closed" : "will be retried"}; waiting for the next`; break;
+    case "refused": $("message").textContent = `the server refused: ${s.code}: ${s.message}`; break;
+    case "finished": $("stage").textContent = `run finished: ${s.rounds_trained} rounds trained`; break;
+  }
+}
+
+async function volunteer() {
+  $("status").hidden = false;
+  state.gpu = await describeWebGpu();
+  $("device").textContent = state.gpu;
+  await init();
+  const name = volunteerName();
+  for (;;) {
+    $("connection").textContent = "connecting";
+    $("message").textContent = "";
+    $("message").className = "";
+    try {
+      await run_volunteer(location.origin, name, $("rollout"), (json) => {
+        const status = JSON.parse(json);
+        show(status.kind, status);
+      });
+      $("connection").textContent = "run finished; thank you";
+      return;
+    } catch (e) {
+      // Expected when the server restarts: say so and try again, backing off.
+      $("connection").textContent = "disconnected; reconnecting";
+      $("message").textContent = String(e && e.message ? e.message : e);
+      $("message").className = "error";
+      console.warn("volunteer stopped:", e);
+      await new Promise((resolve) => setTimeout(resolve, state.reconnectDelay));
+      state.reconnectDelay = Math.min(state.reconnectDelay * 2, RECONNECT_MAX_MS);
+    }
+  }
+}
+
+function join() {
+  $("join").disabled = true;
+  $("consent").disabled = true;
+  localStorage.setItem("fedvla-consent", "given");
+  volunteer();
+}
+
+$("volunteer-name").textContent = "as " + volunteerName();
+$("consent").addEventListener("change", () => { $("join").disabled = !$("consent").checked; });
+$("join").addEventListener("click", join);
+// A volunteer who already agreed rejoins by itself after a reload.
+if (localStorage.getItem("fedvla-consent") === "given") {
+  $("consent").checked = true;
+  join();
+}

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The project's test command (README "Run the tests"): the browser volunteer built for wasm32 and its units run
 # in headless Chromium, then every crate's tests natively, the browser end-to-end tests included (they need
-# Debian's chromium and chromium-driver and the wasm-bindgen CLI of Cargo.lock's version: .ci/run installs them).
+# Debian's chromium and chromium-driver and the wasm-bindgen CLI of Cargo.lock's version; AV1 decoding needs
+# libdav1d-dev and its test ffmpeg: .ci/run installs them all).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -10,5 +11,6 @@ bash client-wasm/build.sh
 # The wasm units (codec, sim, SmolVLA training on the CPU backend and on WebGPU) in a real Chromium.
 CHROMEDRIVER="${CHROMEDRIVER:-/usr/bin/chromedriver}" WASM_BINDGEN_TEST_TIMEOUT=600 \
   wasm-pack test --release --headless --chrome client-wasm
-# Everything native; a missing browser is a failure here, not a skip.
-FEDVLA_REQUIRE_BROWSER=1 cargo test --workspace --locked
+# Everything native, AV1 decoding included; a missing browser or ffmpeg (to encode the AV1 test clip) is a
+# failure here, not a skip.
+FEDVLA_REQUIRE_BROWSER=1 FEDVLA_REQUIRE_AV1=1 cargo test --workspace --locked --features fedvla-server/av1

@@ -7,14 +7,15 @@ use std::sync::{Arc, Mutex};
 
 use axum::body::Bytes;
 use axum::serve::ListenerExt;
-use fedvla_federation::{Evaluator, NamedTensors, Strategy, TensorError, UpdateLimits};
+use fedvla_federation::{BoxError, Evaluator, FedAvg, NamedTensors, Strategy, TensorError, UpdateLimits};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::app::{AppState, PublishedModel, app};
-use crate::config::RunConfig;
+use crate::config::{RunConfig, StrategyKind};
+use crate::workload::Workload;
 use crate::console::{ConsoleHub, random_token};
 use crate::coordinator::{Coordinator, CoordinatorError, RunStatus};
 use crate::run_dir::{ModelExporter, RunDir, RunDirError, TrainableSafetensors};
@@ -35,6 +36,25 @@ pub struct ServerParts {
     pub exporters: Vec<Box<dyn ModelExporter>>,
     /// What volunteers download (shards, policy, frozen weights).
     pub volunteer: VolunteerOffer,
+}
+
+impl ServerParts {
+    /// The server side of `workload` under `config`: its initial model, evaluator, exporters and volunteer offer,
+    /// and the configured strategy.
+    pub fn of<W: Workload>(workload: &W, config: RunConfig, run_dir: RunDir) -> Result<Self, BoxError> {
+        let strategy: Box<dyn Strategy + Send> = match config.strategy {
+            StrategyKind::Fedavg => Box::new(FedAvg),
+        };
+        Ok(Self {
+            initial: workload.initial_model()?,
+            evaluator: workload.evaluator()?,
+            exporters: workload.exporters(),
+            volunteer: workload.volunteer_offer()?,
+            strategy,
+            config,
+            run_dir,
+        })
+    }
 }
 
 #[derive(Debug, thiserror::Error)]

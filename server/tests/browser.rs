@@ -10,14 +10,13 @@ mod webdriver;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use fedvla_federation::{ClientOptions, FedAvg, run_client};
+use fedvla_federation::{ClientOptions, run_client};
 use fedvla_server::config::RunConfig;
 use fedvla_server::datagen::{GenDataOptions, generate_dataset};
 use fedvla_server::native_client::{NativeTransport, smolvla_volunteer};
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::server::{self, ServerHandle, ServerParts};
 use fedvla_server::smolvla_workload::SmolVlaWorkload;
-use fedvla_server::workload::Workload;
 use serde_json::Value;
 use webdriver::{Browser, missing_prerequisite, www_dir};
 
@@ -43,15 +42,7 @@ async fn start_server(tmp: &Path, overrides: &str) -> (ServerHandle, RunDir) {
         .unwrap();
     let run_dir = RunDir::create(&tmp.join("out"), &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
-    let parts = ServerParts {
-        initial: workload.initial_model().unwrap(),
-        evaluator: workload.evaluator().unwrap(),
-        exporters: workload.exporters(),
-        volunteer: workload.volunteer_offer().unwrap(),
-        strategy: Box::new(FedAvg),
-        config: cfg,
-        run_dir: run_dir.clone(),
-    };
+    let parts = ServerParts::of(&workload, cfg, run_dir.clone()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     (server::start(parts, listener).unwrap(), run_dir)
 }

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use fedvla_data::LeRobotDataset;
 use fedvla_federation::codec::HEADER_LEN;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, FedAvg, LocalTrainer, NamedTensors, RoundTask, TrainOutput, run_client,
+    BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask, TrainOutput, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_policy::PolicyDir;
@@ -76,15 +76,7 @@ async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
     let run_dir = RunDir::create(out, &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
     let initial = workload.initial_model().unwrap();
-    let parts = ServerParts {
-        initial: initial.clone(),
-        evaluator: workload.evaluator().unwrap(),
-        exporters: workload.exporters(),
-        volunteer: workload.volunteer_offer().unwrap(),
-        strategy: Box::new(FedAvg),
-        config: cfg.clone(),
-        run_dir: run_dir.clone(),
-    };
+    let parts = ServerParts::of(&workload, cfg.clone(), run_dir.clone()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
     let clients = spawn_clients(&workload, handle.addr(), None);
@@ -197,15 +189,7 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     let cfg = config(&data, &tmp.path().join("out"), 0);
     let run_dir = RunDir::create(&tmp.path().join("out"), &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
-    let parts = ServerParts {
-        initial: workload.initial_model().unwrap(),
-        evaluator: workload.evaluator().unwrap(),
-        exporters: Vec::new(),
-        volunteer: workload.volunteer_offer().unwrap(),
-        strategy: Box::new(FedAvg),
-        config: cfg,
-        run_dir,
-    };
+    let parts = ServerParts::of(&workload, cfg, run_dir).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
     let transport = NativeTransport::connect(&format!("ws://{}", handle.addr())).await.unwrap();
@@ -231,15 +215,7 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
     let dir = run_dir.path().to_owned();
     let start = |cfg: RunConfig, run_dir: RunDir| async move {
         let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
-        let parts = ServerParts {
-            initial: workload.initial_model().unwrap(),
-            evaluator: workload.evaluator().unwrap(),
-            exporters: workload.exporters(),
-            volunteer: workload.volunteer_offer().unwrap(),
-            strategy: Box::new(FedAvg),
-            config: cfg,
-            run_dir,
-        };
+        let parts = ServerParts::of(&workload, cfg, run_dir).unwrap();
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         (server::start(parts, listener).unwrap(), workload)
     };

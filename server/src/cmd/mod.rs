@@ -14,13 +14,12 @@ use std::sync::Mutex;
 
 use anyhow::Context;
 use clap::Subcommand;
-use fedvla_federation::{BoxError, FedAvg, Strategy};
-use fedvla_server::config::{RunConfig, StrategyKind, WorkloadKind};
+use fedvla_federation::BoxError;
+use fedvla_server::config::{RunConfig, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
 use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::run_dir::RunDir;
 use fedvla_server::server::ServerParts;
-use fedvla_server::workload::Workload;
 use tracing_subscriber::filter::{EnvFilter, LevelFilter};
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
@@ -78,35 +77,16 @@ impl ConfigArgs {
 /// client subcommands (join, simulate).
 fn server_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerParts> {
     match config.workload {
-        WorkloadKind::Linreg => parts_of(&LinRegWorkload::from_config(&config), config, run_dir),
+        WorkloadKind::Linreg => ServerParts::of(&LinRegWorkload::from_config(&config), config, run_dir).map_err(boxed),
         WorkloadKind::Smolvla => {
             let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
-            parts_of(&workload, config, run_dir)
+            ServerParts::of(&workload, config, run_dir).map_err(boxed)
         }
     }
 }
 
 /// Where a run keeps its clients' shards and the server's held-out shard.
 const SHARDS_DIR: &str = "shards";
-
-fn parts_of<W: Workload>(
-    workload: &W,
-    config: RunConfig,
-    run_dir: RunDir,
-) -> anyhow::Result<ServerParts> {
-    let strategy: Box<dyn Strategy + Send> = match config.strategy {
-        StrategyKind::Fedavg => Box::new(FedAvg),
-    };
-    Ok(ServerParts {
-        initial: workload.initial_model().map_err(boxed)?,
-        evaluator: workload.evaluator().map_err(boxed)?,
-        exporters: workload.exporters(),
-        volunteer: workload.volunteer_offer().map_err(boxed)?,
-        strategy,
-        config,
-        run_dir,
-    })
-}
 
 /// Library errors crossing trait objects, into anyhow.
 fn boxed(e: BoxError) -> anyhow::Error {

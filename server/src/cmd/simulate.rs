@@ -10,7 +10,7 @@ use fedvla_server::linreg::LinRegWorkload;
 use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
-use fedvla_server::server;
+use fedvla_server::server::{self, ServerParts};
 use fedvla_server::workload::Workload;
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use tokio::net::TcpListener;
@@ -65,7 +65,7 @@ fn simulate<W: Workload>(
         .map_err(super::boxed)?;
     let metrics_path = run_dir.path().join(METRICS_FILE);
     let rounds = config.num_server_rounds;
-    let parts = super::parts_of(workload, config, run_dir)?;
+    let parts = ServerParts::of(workload, config, run_dir).map_err(super::boxed)?;
     super::runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0")
             .await

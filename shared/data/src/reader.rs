@@ -9,7 +9,7 @@ use serde::Deserialize;
 
 use crate::error::{DataError, Result};
 use crate::info::{self, CodebaseVersion, DatasetInfo, EPISODES_PATH_V30};
-use crate::stats::{DatasetStats, load_stats};
+use crate::stats::{DatasetStats, FeatureStats, load_stats};
 use crate::table::Table;
 use crate::video::{RgbImage, VideoCache};
 
@@ -38,6 +38,8 @@ pub struct EpisodeMeta {
     pub dataset_to_index: usize,
     /// By camera key.
     pub videos: BTreeMap<String, EpisodeVideo>,
+    /// This episode's own statistics by feature (v3.0's `stats/<feature>/<stat>` columns; empty for v2.1).
+    pub stats: DatasetStats,
 }
 
 /// Time offsets (seconds) to load around a frame, per feature key, e.g. `action: [0, 1/30, ..., 49/30]`.
@@ -301,6 +303,7 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
                 })
             })
             .collect::<Result<Vec<_>>>()?;
+        let stats = episode_stats(&t, info)?;
         for row in 0..t.num_rows() {
             if !data_files.contains(&(data_chunk[row], data_file[row])) {
                 data_files.push((data_chunk[row], data_file[row]));
@@ -318,6 +321,7 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
                         (v.key.clone(), EpisodeVideo { path, from_timestamp: v.from_timestamp[row], to_timestamp: v.to_timestamp[row] })
                     })
                     .collect(),
+                stats: stats.iter().filter_map(|(key, rows)| Some((key.clone(), rows[row].clone()?))).collect(),
             });
         }
     }
@@ -325,6 +329,33 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
     data_files.sort();
     let data_paths = data_files.into_iter().map(|(c, f)| info::v30_path(root, &info.data_path, c as u64, f as u64, None)).collect();
     Ok((tasks, episodes, data_paths))
+}
+
+/// The per-episode statistics of one episodes file, by feature, one entry per row (`None` where a row lacks
+/// mean, std, min or max).
+fn episode_stats(t: &Table, info: &DatasetInfo) -> Result<BTreeMap<String, Vec<Option<FeatureStats>>>> {
+    let mut columns: BTreeMap<String, BTreeMap<String, Vec<Vec<f64>>>> = BTreeMap::new();
+    for name in t.column_names() {
+        if let Some((feature, stat)) = name.strip_prefix("stats/").and_then(|rest| rest.rsplit_once('/')) {
+            columns.entry(feature.to_owned()).or_default().insert(stat.to_owned(), t.flat_f64_rows(&name)?);
+        }
+    }
+    let cameras = info.features.video_keys();
+    Ok(columns
+        .into_iter()
+        .map(|(feature, by_stat)| {
+            let rows = (0..t.num_rows())
+                .map(|row| {
+                    let get = |stat: &str| by_stat.get(stat).map(|rows| rows[row].clone());
+                    let len = get("mean").map_or(0, |m| m.len());
+                    // Cameras keep LeRobot's per-channel [3, 1, 1]; every other feature is a vector.
+                    let shape = if cameras.contains(&feature) { vec![len, 1, 1] } else { vec![len] };
+                    FeatureStats::from_named(shape, get)
+                })
+                .collect();
+            (feature, rows)
+        })
+        .collect())
 }
 
 #[derive(Deserialize)]
@@ -371,6 +402,7 @@ fn load_v21_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
             dataset_from_index: from,
             dataset_to_index: from + line.length,
             videos,
+            stats: DatasetStats::new(),
         });
         from += line.length;
     }

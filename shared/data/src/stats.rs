@@ -147,15 +147,20 @@ impl FeatureStats {
 
     /// Parses one feature's entry of `stats.json`; missing quantiles (older datasets) read as empty.
     pub fn from_json(value: &Value) -> Option<FeatureStats> {
-        let (mean, shape) = flatten(value.get("mean")?)?;
-        let get = |k: &str| value.get(k).and_then(flatten).map(|(v, _)| v);
-        let count = value.get("count").and_then(flatten).and_then(|(v, _)| v.first().copied()).unwrap_or(0.0) as u64;
+        let (_, shape) = flatten(value.get("mean")?)?;
+        Self::from_named(shape, |k| value.get(k).and_then(flatten).map(|(v, _)| v))
+    }
+
+    /// Builds the stats from each statistic's flat values by name (`"mean"`, `"count"`, `"q01"`...), as
+    /// `stats.json` and the per-episode `stats/<feature>/<name>` columns store them; missing quantiles read as empty.
+    pub fn from_named(shape: Vec<usize>, get: impl Fn(&str) -> Option<Vec<f64>>) -> Option<FeatureStats> {
+        let count = get("count").and_then(|v| v.first().copied()).unwrap_or(0.0) as u64;
         Some(FeatureStats {
             shape,
             min: get("min")?,
             max: get("max")?,
+            mean: get("mean")?,
             std: get("std")?,
-            mean,
             count,
             quantiles: QUANTILES.iter().map(|(k, _)| get(k).unwrap_or_default()).collect(),
         })

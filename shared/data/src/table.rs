@@ -91,6 +91,24 @@ impl Table {
         self.batches.iter().map(RecordBatch::num_rows).sum()
     }
 
+    /// The column names, in file order.
+    pub fn column_names(&self) -> Vec<String> {
+        self.batches.first().map(|b| b.schema().fields().iter().map(|f| f.name().clone()).collect()).unwrap_or_default()
+    }
+
+    /// A column of (possibly nested) lists of numbers as one flat f64 vector per row, e.g. LeRobot's per-episode
+    /// `stats/<feature>/<stat>` columns.
+    pub fn flat_f64_rows(&self, name: &str) -> Result<Vec<Vec<f64>>> {
+        let mut out = Vec::with_capacity(self.num_rows());
+        for col in self.columns(name)? {
+            let list = col.as_list_opt::<i32>().ok_or_else(|| self.bad_type(name, col.data_type(), "a list of numbers"))?;
+            for i in 0..list.len() {
+                out.push(flat_numbers(&list.value(i)).ok_or_else(|| self.bad_type(name, col.data_type(), "a list of numbers"))?);
+            }
+        }
+        Ok(out)
+    }
+
     fn columns(&self, name: &str) -> Result<Vec<&ArrayRef>> {
         self.batches
             .iter()
@@ -177,5 +195,24 @@ impl Table {
 
     fn bad_type(&self, name: &str, found: &DataType, expected: &str) -> DataError {
         DataError::column(&self.path, name, format!("expected {expected}, found {found}"))
+    }
+}
+
+/// Every number of a (nested) list array, in order; `None` for anything else.
+fn flat_numbers(array: &ArrayRef) -> Option<Vec<f64>> {
+    if let Some(list) = array.as_list_opt::<i32>() {
+        let mut out = Vec::new();
+        for i in 0..list.len() {
+            out.extend(flat_numbers(&list.value(i))?);
+        }
+        Some(out)
+    } else if let Some(a) = array.as_primitive_opt::<Float64Type>() {
+        Some(a.iter().map(|v| v.unwrap_or_default()).collect())
+    } else if let Some(a) = array.as_primitive_opt::<Float32Type>() {
+        Some(a.iter().map(|v| f64::from(v.unwrap_or_default())).collect())
+    } else if let Some(a) = array.as_primitive_opt::<Int64Type>() {
+        Some(a.iter().map(|v| v.unwrap_or_default() as f64).collect())
+    } else {
+        None
     }
 }

@@ -59,6 +59,21 @@ fn written_dataset_reads_back() {
         }
     }
     assert_eq!(stats["observation.images.top"].shape, vec![3, 1, 1]);
+
+    // Each episode's own stats (the episodes parquet's stats/<feature>/<stat> columns) equal its recomputed ones.
+    for (e, episode) in episodes.iter().enumerate() {
+        let own = &ds.episodes()[e].stats;
+        let rows: Vec<Vec<f64>> = episode.frames.iter().map(|f| f.state.iter().map(|&v| f64::from(v)).collect()).collect();
+        let expected = FeatureStats::from_rows(&rows, 6);
+        let stored = &own["observation.state"];
+        assert_eq!((stored.count, stored.shape.clone()), (20, vec![6]), "episode {e}");
+        for d in 0..6 {
+            assert!((stored.mean[d] - expected.mean[d]).abs() < 1e-9, "episode {e} state mean");
+            assert_eq!((stored.min[d], stored.max[d]), (expected.min[d], expected.max[d]), "episode {e} state min/max");
+        }
+        assert_eq!(own["observation.images.wrist"].shape, vec![3, 1, 1], "episode {e}");
+        assert!(own.contains_key("action"), "episode {e}");
+    }
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }
 

@@ -1,6 +1,7 @@
 //! The SO-100 arm's kinematic description (joint origins, axes, limits, link masses) read from
-//! the published SO-ARM100 / MuJoCo Menagerie `trs_so_arm100` model, its forward kinematics,
-//! the joint units used on the real robot, and primitive link geometry standing in for meshes.
+//! the published SO-ARM100 / MuJoCo Menagerie `trs_so_arm100` model, its forward kinematics and
+//! statics (the gravity torque on each joint), the joint units used on the real robot, and
+//! primitive link geometry standing in for meshes.
 //!
 //! Frames follow the published model: the base frame has z up and the arm works towards -y
 //! (the side its elbow folds to).
@@ -176,6 +177,50 @@ pub fn forward_kinematics(base: Pose, q: &[f32; JOINT_COUNT]) -> [Pose; LINK_COU
     poses
 }
 
+/// A point mass carried by one link, such as the held cube.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Payload {
+    /// Index of the link that carries it.
+    pub link: usize,
+    /// Mass, kg.
+    pub mass: f32,
+    /// Centre of mass, world frame, metres.
+    pub position: Vec3,
+}
+
+/// Torque each joint's servo must exert about its axis to hold everything outboard of that
+/// joint (the links of [`LINKS`] and `payload`) still against `gravity` (m/s², world frame),
+/// N·m, positive along the joint axis; `links` are the link poses from [`forward_kinematics`].
+pub fn gravity_torques(
+    links: &[Pose; LINK_COUNT],
+    payload: Option<Payload>,
+    gravity: Vec3,
+) -> [f32; JOINT_COUNT] {
+    let specs = joints();
+    let weights: [(usize, f32, Vec3); LINK_COUNT] = std::array::from_fn(|link| {
+        let spec = LINKS[link];
+        (
+            link,
+            spec.mass,
+            links[link].transform_point(spec.center_of_mass),
+        )
+    });
+    let carried = payload.map(|p| (p.link, p.mass, p.position));
+    std::array::from_fn(|joint| {
+        let pivot = links[joint + 1];
+        let axis = pivot.rotation * specs[joint].axis;
+        let moment: Vec3 = weights
+            .iter()
+            .chain(carried.iter())
+            // Link `joint + 1` is the joint's child, so links after `joint` are outboard of it.
+            .filter(|(link, _, _)| *link > joint)
+            .map(|(_, mass, position)| (*position - pivot.translation).cross(gravity * *mass))
+            .sum();
+        // The servo cancels gravity's moment about its axis.
+        -axis.dot(moment)
+    })
+}
+
 /// Degrees for the five arm joints and 0..100 for the gripper, as LeRobot records SO-100
 /// data. Gripper 0 is the jaw's closed limit, 100 its open limit.
 pub fn to_robot_units(q: &[f32; JOINT_COUNT]) -> [f32; JOINT_COUNT] {
@@ -281,6 +326,7 @@ pub fn link_parts() -> [Vec<Part>; LINK_COUNT] {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::GRAVITY;
 
     #[test]
     fn robot_units_round_trip() {
@@ -298,6 +344,32 @@ mod tests {
             to_robot_units(&[0.0, 0.0, 0.0, 0.0, 0.0, -0.2])[GRIPPER],
             0.0
         );
+    }
+
+    #[test]
+    fn a_payload_loads_the_joints_inboard_of_its_link_by_its_weight_times_its_lever() {
+        // Arm stretched out forward (-y); the pan axis is vertical and carries nothing.
+        let links = forward_kinematics(Pose::IDENTITY, &[0.0; JOINT_COUNT]);
+        let bare = gravity_torques(&links, None, GRAVITY);
+        assert!(bare[0].abs() < 1e-6, "pan {}", bare[0]);
+        let payload = Payload {
+            link: GRIPPER_LINK,
+            mass: 0.1,
+            position: links[GRIPPER_LINK].transform_point(grasp_point(0.012)),
+        };
+        let loaded = gravity_torques(&links, Some(payload), GRAVITY);
+        // Shoulder lift, elbow and wrist flex turn about horizontal axes across the arm: the
+        // lever is the distance along y from the joint to the payload.
+        for joint in 1..=3 {
+            let lever = (links[joint + 1].translation.y - payload.position.y).abs();
+            let added = (loaded[joint] - bare[joint]).abs();
+            assert!(
+                (added - 0.1 * -GRAVITY.z * lever).abs() < 1e-4,
+                "joint {joint}: {added} N·m for a {lever} m lever"
+            );
+        }
+        // The jaw does not carry what the fixed finger holds.
+        assert_eq!(loaded[GRIPPER], bare[GRIPPER]);
     }
 
     #[test]

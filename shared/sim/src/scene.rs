@@ -3,19 +3,22 @@
 //! made of several physics substeps.
 //!
 //! The arm links are kinematic bodies posed by forward kinematics of the servo positions: the
-//! real arm is position-controlled and its servos hold a pose against the light loads of this
-//! task, so the servo model (speed limit, gripper stall) decides where the links are and the
-//! physics decides what the cube does.
+//! real arm is position-controlled, so the servo model decides where the links are (each servo
+//! moves towards its goal within its speed and torque limits, against the gravity torque of the
+//! links outboard of its joint and of the cube while it is held; the gripper stalls on the
+//! cube) and the physics decides what the cube does.
 //!
 //! Grasping: the closing jaw presses the cube onto the fixed finger until the gripper servo
 //! stalls. A real STS3215 grips with tens of newtons against the cube's 0.08 N weight, so
 //! static friction never slips; rapier's velocity-level solver cannot hold a body squeezed
 //! between two kinematic bodies steadily, so that static friction is modelled as a fixed
-//! joint between gripper and cube that exists only while both fingers press on it. The cube
-//! stays a dynamic body throughout (it hits the bowl, and falls when the jaw opens).
+//! joint between gripper and cube that exists only while both fingers press on it; the fixed
+//! finger's contacts with the cube are off while it holds, and the held cube keeps the jaw
+//! from closing further. The cube stays a dynamic body throughout (it hits the bowl, and falls
+//! when the jaw opens).
 
-use crate::arm::{self, GRIPPER, GRIPPER_LINK, JAW_LINK, JOINT_COUNT, LINK_COUNT};
-use crate::servo::{ARM_MAX_SPEED, GRIPPER_MAX_SPEED, Servo};
+use crate::arm::{self, GRIPPER, GRIPPER_LINK, JAW_LINK, JOINT_COUNT, LINK_COUNT, Payload};
+use crate::servo::Servo;
 use crate::shape::{Part, Rgb};
 use crate::task::{self, BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, Layout};
 use rapier3d::math::{Pose, Rot3, Vec3};
@@ -27,6 +30,8 @@ use std::f32::consts::FRAC_PI_2;
 
 /// Control rate, frames per second.
 pub const FPS: u32 = 30;
+/// Gravity, m/s², world frame.
+pub const GRAVITY: Vec3 = Vec3::new(0.0, 0.0, -9.81);
 /// Physics substeps per control step (240 Hz physics keeps the grasp contacts stiff).
 pub const SUBSTEPS: u32 = 8;
 /// How far the closing jaw presses into the cube before the gripper servo stalls, metres:
@@ -82,7 +87,7 @@ impl Scene {
     pub fn new(seed: u64) -> Self {
         let layout = Layout::from_seed(seed);
         let mut world = PhysicsWorld::new();
-        world.gravity = Vec3::new(0.0, 0.0, -9.81);
+        world.gravity = GRAVITY;
         world.integration_parameters.dt = 1.0 / (FPS * SUBSTEPS) as f32;
         // Grasp forces come from penetration depths: keep contacts exact, not recycled.
         world.integration_parameters.contact_recycling = false;
@@ -145,16 +150,6 @@ impl Scene {
             }
             <[RigidBodyHandle; LINK_COUNT]>::try_from(handles).expect("one body per link")
         };
-        let servos = std::array::from_fn(|i| {
-            Servo::new(
-                HOME[i],
-                if i == GRIPPER {
-                    GRIPPER_MAX_SPEED
-                } else {
-                    ARM_MAX_SPEED
-                },
-            )
-        });
         Self {
             world,
             layout,
@@ -166,7 +161,7 @@ impl Scene {
             grip: None,
             cube,
             cube_collider: cube_colliders[0],
-            servos,
+            servos: HOME.map(Servo::new),
             visuals,
             frame: 0,
         }
@@ -184,12 +179,19 @@ impl Scene {
             }
         }
         let dt = self.world.integration_parameters.dt;
+        let joints = arm::joints();
         for _ in 0..SUBSTEPS {
             let jaw_penetration = self.jaw_penetration();
             self.update_grip(jaw_penetration);
-            let jaw_stall = (jaw_penetration > GRIP_SQUEEZE).then_some(-1.0);
+            let loads = self.gravity_loads();
+            // The squeezed cube stops the closing jaw, and keeps it from closing further for as
+            // long as it is held (the jaw's contact with the held cube jitters about the squeeze).
+            let squeezed = self.grip.is_some() || jaw_penetration > GRIP_SQUEEZE;
+            let jaw_blocked = squeezed.then_some(-1.0);
             for (i, servo) in self.servos.iter_mut().enumerate() {
-                servo.advance(dt, if i == GRIPPER { jaw_stall } else { None });
+                servo.advance(dt, loads[i], if i == GRIPPER { jaw_blocked } else { None });
+                // The joint's mechanical stops hold an overloaded servo that is pushed back.
+                servo.position = servo.position.clamp(joints[i].lower, joints[i].upper);
             }
             let poses = arm::forward_kinematics(self.base, &self.joint_positions());
             for (handle, pose) in self.links.iter().zip(poses).skip(1) {
@@ -208,6 +210,18 @@ impl Scene {
     /// Measured joint positions, radians.
     pub fn joint_positions(&self) -> [f32; JOINT_COUNT] {
         self.servos.map(|servo| servo.position)
+    }
+
+    /// Torque each servo drove its joint with in the last physics substep, N·m, positive along
+    /// the joint axis (see [`Servo::torque`]).
+    pub fn joint_torques(&self) -> [f32; JOINT_COUNT] {
+        self.servos.map(|servo| servo.torque)
+    }
+
+    /// Sets the torque limit of the servo of `joint`, N·m (a weaker or stronger servo than the
+    /// STS3215 at 7.4 V, e.g. the 12 V version or one on a sagging supply).
+    pub fn set_stall_torque(&mut self, joint: usize, torque: f32) {
+        self.servos[joint].stall_torque = torque;
     }
 
     /// Whether the task is done: the cube rests in the bowl (centre within
@@ -268,6 +282,19 @@ impl Scene {
         self.grip.is_some()
     }
 
+    /// Torque each joint needs to hold the arm still against gravity as it stands now, with the
+    /// cube while it is gripped, N·m.
+    fn gravity_loads(&self) -> [f32; JOINT_COUNT] {
+        let links = self.links.map(|link| *self.world.bodies[link].position());
+        let cube = &self.world.bodies[self.cube];
+        let held = self.grip.map(|_| Payload {
+            link: GRIPPER_LINK,
+            mass: cube.mass(),
+            position: cube.center_of_mass(),
+        });
+        arm::gravity_torques(&links, held, GRAVITY)
+    }
+
     /// Starts holding the cube when the jaw presses it onto the fixed finger, and lets go
     /// as soon as the gripper is told to open.
     fn update_grip(&mut self, jaw_penetration: f32) {
@@ -282,9 +309,12 @@ impl Scene {
                 let relative = self.world.bodies[gripper]
                     .position()
                     .inv_mul(&self.cube_pose());
+                // The hold stands in for the fixed finger's contact with the cube: left on, that
+                // contact fights the joint, stores impulse and flings the cube when it lets go.
                 let hold = FixedJointBuilder::new()
                     .local_frame1(relative)
-                    .local_frame2(Pose::IDENTITY);
+                    .local_frame2(Pose::IDENTITY)
+                    .contacts_enabled(false);
                 self.grip = Some(
                     self.world
                         .impulse_joints

@@ -6,6 +6,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# One style (rustfmt.toml), checked first because it is instant.
+cargo fmt --check
 # The wasm volunteer into www/pkg, which the server serves and the browser tests load.
 bash client-wasm/build.sh
 # The wasm units (codec, sim, SmolVLA training on the CPU backend and on WebGPU) in a real Chromium.

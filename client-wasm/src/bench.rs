@@ -14,7 +14,12 @@ use crate::volunteer::webgpu_device;
 /// Times `steps` training steps of the `model_size` preset at `batch_size` on random inputs; `webgpu` picks the
 /// page's WebGPU adapter instead of the CPU. Resolves with a JSON object of the figures.
 #[wasm_bindgen]
-pub async fn bench_training(model_size: String, batch_size: usize, steps: u32, webgpu: bool) -> Result<String, JsValue> {
+pub async fn bench_training(
+    model_size: String,
+    batch_size: usize,
+    steps: u32,
+    webgpu: bool,
+) -> Result<String, JsValue> {
     let cfg = SmolVlaConfig::preset(&model_size).map_err(js_error)?;
     let device = if webgpu { webgpu_device().await.map_err(js_error)? } else { Device::flex() };
     let weights = init_random(&cfg.param_specs(), 0);

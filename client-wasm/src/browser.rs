@@ -10,14 +10,18 @@ fn global() -> js_sys::Object {
 
 /// Seconds since the page started, from `performance.now()`.
 pub fn now_seconds() -> f64 {
-    let performance = js_sys::Reflect::get(&global(), &"performance".into()).ok().and_then(|p| p.dyn_into::<web_sys::Performance>().ok());
+    let performance = js_sys::Reflect::get(&global(), &"performance".into())
+        .ok()
+        .and_then(|p| p.dyn_into::<web_sys::Performance>().ok());
     performance.map_or(0.0, |p| p.now() / 1000.0)
 }
 
 /// Resolves after `ms` milliseconds (a `setTimeout`), letting the page render and handle events meanwhile.
 pub async fn sleep_ms(ms: i32) {
     let promise = js_sys::Promise::new(&mut |resolve, _| {
-        let set_timeout = js_sys::Reflect::get(&global(), &"setTimeout".into()).expect("setTimeout").unchecked_into::<js_sys::Function>();
+        let set_timeout = js_sys::Reflect::get(&global(), &"setTimeout".into())
+            .expect("setTimeout")
+            .unchecked_into::<js_sys::Function>();
         set_timeout.call2(&JsValue::NULL, &resolve, &JsValue::from(ms)).expect("setTimeout call");
     });
     wasm_bindgen_futures::JsFuture::from(promise).await.ok();

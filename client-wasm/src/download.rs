@@ -33,7 +33,10 @@ async fn response_bytes(response: &Response) -> Result<Vec<u8>, JsValue> {
 /// `GET url`, reading the body chunk by chunk and reporting `(received, total)` bytes (total 0 when unknown).
 pub async fn fetch_with_progress(url: &str, mut on_progress: impl FnMut(u64, u64)) -> Result<Vec<u8>, JsValue> {
     let fetch = Reflect::get(&js_sys::global(), &"fetch".into())?.unchecked_into::<js_sys::Function>();
-    let response: Response = JsFuture::from(fetch.call1(&JsValue::NULL, &url.into())?.unchecked_into::<js_sys::Promise>()).await?.dyn_into()?;
+    let response: Response =
+        JsFuture::from(fetch.call1(&JsValue::NULL, &url.into())?.unchecked_into::<js_sys::Promise>())
+            .await?
+            .dyn_into()?;
     if !response.ok() {
         let text = JsFuture::from(response.text()?).await?.as_string().unwrap_or_default();
         return Err(js_error(format!("GET {url}: {} {}", response.status(), text)));

@@ -10,7 +10,10 @@ use fedvla_sim::{Camera, Scene, render};
 use wasm_bindgen::prelude::*;
 use wasm_bindgen::{Clamped, JsCast};
 use wasm_bindgen_futures::JsFuture;
-use web_sys::{Blob, BlobEvent, CanvasRenderingContext2d, HtmlCanvasElement, ImageData, MediaRecorder, MediaRecorderOptions, MediaStream};
+use web_sys::{
+    Blob, BlobEvent, CanvasRenderingContext2d, HtmlCanvasElement, ImageData, MediaRecorder, MediaRecorderOptions,
+    MediaStream,
+};
 
 /// The recording's container and codec; VP8 is encoded in software everywhere, headless Chromium included.
 const MIME: &str = "video/webm;codecs=vp8";
@@ -27,7 +30,8 @@ impl CanvasView {
     pub fn new(canvas: HtmlCanvasElement, size: usize) -> Result<Self, JsValue> {
         canvas.set_width((size * Camera::ALL.len()) as u32);
         canvas.set_height(size as u32);
-        let context = canvas.get_context("2d")?.ok_or("the canvas has no 2d context")?.dyn_into::<CanvasRenderingContext2d>()?;
+        let context =
+            canvas.get_context("2d")?.ok_or("the canvas has no 2d context")?.dyn_into::<CanvasRenderingContext2d>()?;
         Ok(Self { canvas, context, size, rgba: vec![255; size * size * 4] })
     }
 

@@ -54,7 +54,9 @@ impl ClientTransport for BrowserTransport {
     }
 
     async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
-        fetch_with_progress(&self.url(&format!("/model/{version}")), |_, _| {}).await.map_err(|e| format!("{e:?}").into())
+        fetch_with_progress(&self.url(&format!("/model/{version}")), |_, _| {})
+            .await
+            .map_err(|e| format!("{e:?}").into())
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
@@ -69,7 +71,9 @@ impl ClientTransport for BrowserTransport {
             .await
             .map_err(|e| format!("POST {url}: {e}"))?;
         if !response.ok() {
-            return Err(format!("POST {url}: {} {}", response.status(), response.text().await.unwrap_or_default()).into());
+            return Err(
+                format!("POST {url}: {} {}", response.status(), response.text().await.unwrap_or_default()).into()
+            );
         }
         Ok(())
     }

@@ -8,8 +8,8 @@ use burn::tensor::Device;
 use fedvla_data::ShardFileManifest;
 use fedvla_data::shard::verify_shard_bytes;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, LocalTrainer, NamedTensors, PROTOCOL_VERSION, RolloutOutput,
-    RolloutRequest, RoundTask, TrainOutput, VolunteerSetup, run_client,
+    BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, LocalTrainer, NamedTensors, PROTOCOL_VERSION,
+    RolloutOutput, RolloutRequest, RoundTask, TrainOutput, VolunteerSetup, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::rollout::Episode;
@@ -58,14 +58,22 @@ const ROLLOUT_FPS: f64 = 30.0;
 const ROLLOUT_VIEW_SIZE: usize = 128;
 
 fn boxed(e: JsValue) -> BoxError {
-    e.as_string().or_else(|| js_sys::Error::from(e).message().as_string()).unwrap_or_else(|| "JavaScript error".into()).into()
+    e.as_string()
+        .or_else(|| js_sys::Error::from(e).message().as_string())
+        .unwrap_or_else(|| "JavaScript error".into())
+        .into()
 }
 
 /// Joins the federation served at `origin` as `name`, drawing rollouts on `canvas` and reporting every change to
 /// `on_status` (one JSON string per call). Resolves with the run's summary when the server finishes the run;
 /// rejects with a message when anything fails (the page shows it and reconnects).
 #[wasm_bindgen]
-pub async fn run_volunteer(origin: String, name: String, canvas: HtmlCanvasElement, on_status: js_sys::Function) -> Result<JsValue, JsValue> {
+pub async fn run_volunteer(
+    origin: String,
+    name: String,
+    canvas: HtmlCanvasElement,
+    on_status: js_sys::Function,
+) -> Result<JsValue, JsValue> {
     let status = StatusSink::new(on_status);
     let started = now_seconds();
     let mut trainer = prepare(&origin, &name, canvas, &status).await.map_err(|e| js_error(format!("{e}")))?;
@@ -87,17 +95,30 @@ pub async fn run_volunteer(origin: String, name: String, canvas: HtmlCanvasEleme
 }
 
 /// Downloads the setup, the frozen weights, the shard and the global model, and builds the trainer.
-async fn prepare(origin: &str, name: &str, canvas: HtmlCanvasElement, status: &StatusSink) -> Result<BrowserTrainer, BoxError> {
+async fn prepare(
+    origin: &str,
+    name: &str,
+    canvas: HtmlCanvasElement,
+    status: &StatusSink,
+) -> Result<BrowserTrainer, BoxError> {
     let get = |path: &str| format!("{}{path}", origin.trim_end_matches('/'));
     status.send("stage", json!({ "stage": "setup" }));
-    let setup: VolunteerSetup = serde_json::from_slice(&fetch_with_progress(&get("/api/volunteer"), |_, _| {}).await.map_err(boxed)?)?;
+    let setup: VolunteerSetup =
+        serde_json::from_slice(&fetch_with_progress(&get("/api/volunteer"), |_, _| {}).await.map_err(boxed)?)?;
     if setup.protocol_version != PROTOCOL_VERSION {
-        return Err(format!("the server speaks protocol {}, this page {PROTOCOL_VERSION}: reload the page", setup.protocol_version).into());
+        return Err(format!(
+            "the server speaks protocol {}, this page {PROTOCOL_VERSION}: reload the page",
+            setup.protocol_version
+        )
+        .into());
     }
     if setup.workload != "smolvla" {
         return Err(format!("the server runs the {:?} workload; browsers train SmolVLA only", setup.workload).into());
     }
-    status.send("setup", json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version }));
+    status.send(
+        "setup",
+        json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version }),
+    );
     let download = async |what: &str, url: &str, key: &str| -> Result<Vec<u8>, BoxError> {
         let (bytes, source) = cached(&get(url), key, |received, total| {
             status.send("download", json!({ "what": what, "received": received, "total": total }));
@@ -113,7 +134,12 @@ async fn prepare(origin: &str, name: &str, canvas: HtmlCanvasElement, status: &S
         serde_json::from_slice(&fetch_with_progress(&get(&setup.shard_manifest_url), |_, _| {}).await.map_err(boxed)?)?;
     let shard = download("shard", &setup.shard_url, &format!("/shard/sha256/{}", manifest.file_sha256)).await?;
     verify_shard_bytes(Path::new(&manifest.file), &shard, &manifest)?;
-    let global = download("global model", &format!("/model/{}", setup.model_version), &format!("/model/{}", setup.model_version)).await?;
+    let global = download(
+        "global model",
+        &format!("/model/{}", setup.model_version),
+        &format!("/model/{}", setup.model_version),
+    )
+    .await?;
     status.send("stage", json!({ "stage": "building the model" }));
     yield_to_page().await;
     let downloads = Downloads { setup: &setup, frozen: &frozen, global: &global, shard: &shard, manifest: &manifest };
@@ -201,17 +227,24 @@ impl LocalTrainer for BrowserTrainer {
 fn report(status: &StatusSink, event: ClientEvent) {
     match event {
         ClientEvent::Joined { client_id } => status.send("joined", json!({ "client_id": client_id })),
-        ClientEvent::Task { round, local_steps } => status.send("task", json!({ "round": round, "local_steps": local_steps })),
+        ClientEvent::Task { round, local_steps } => {
+            status.send("task", json!({ "round": round, "local_steps": local_steps }))
+        }
         ClientEvent::Trained { round, examples, train_loss } => {
             status.send("trained", json!({ "round": round, "examples": examples, "train_loss": train_loss }))
         }
-        ClientEvent::Uploaded { round, bytes, total_up, total_down } => {
-            status.send("uploaded", json!({ "round": round, "bytes": bytes, "total_up": total_up, "total_down": total_down }))
-        }
+        ClientEvent::Uploaded { round, bytes, total_up, total_down } => status.send(
+            "uploaded",
+            json!({ "round": round, "bytes": bytes, "total_up": total_up, "total_down": total_down }),
+        ),
         ClientEvent::RolledOut { round, episodes, successes } => {
             status.send("rollouts", json!({ "round": round, "episodes": episodes, "successes": successes }))
         }
-        ClientEvent::RoundClosed { round, accepted } => status.send("round_closed", json!({ "round": round, "accepted": accepted })),
-        ClientEvent::Refused { code, message } => status.send("refused", json!({ "code": code.as_str(), "message": message })),
+        ClientEvent::RoundClosed { round, accepted } => {
+            status.send("round_closed", json!({ "round": round, "accepted": accepted }))
+        }
+        ClientEvent::Refused { code, message } => {
+            status.send("refused", json!({ "code": code.as_str(), "message": message }))
+        }
     }
 }

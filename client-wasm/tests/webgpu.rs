@@ -16,7 +16,10 @@ async fn tiny_smolvla_trains_on_webgpu_as_it_does_on_the_cpu() {
     let cfg = SmolVlaConfig::tiny();
     let weights = init_random(&cfg.param_specs(), 1);
     let batch = Batch::random(&cfg, 1, 11);
-    let gpu = Device::wgpu_options().init_async().await.expect("a WebGPU adapter (Chromium runs with --enable-unsafe-webgpu)");
+    let gpu = Device::wgpu_options()
+        .init_async()
+        .await
+        .expect("a WebGPU adapter (Chromium runs with --enable-unsafe-webgpu)");
     let mut runs = Vec::new();
     for (name, device) in [("cpu (flex)", Device::flex()), ("webgpu", gpu)] {
         let mut trainer = Trainer::new(&cfg, &weights, &device.autodiff(), 5).unwrap();

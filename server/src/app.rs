@@ -70,28 +70,16 @@ async fn ws_upgrade(ws: WebSocketUpgrade, State(state): State<AppState>) -> Resp
     // Twice our frame limit at the WebSocket layer, so a moderately oversized frame still reaches the codec and
     // gets a clear error, while an absurd one is cut off before it is buffered.
     let limit = state.limits.max_frame_bytes * 2 + 64 * 1024;
-    ws.max_frame_size(limit)
-        .max_message_size(limit)
-        .on_upgrade(move |socket| {
-            let (sink, stream) = socket.split();
-            handle_socket(sink, stream, state)
-        })
+    ws.max_frame_size(limit).max_message_size(limit).on_upgrade(move |socket| {
+        let (sink, stream) = socket.split();
+        handle_socket(sink, stream, state)
+    })
 }
 
-async fn get_model(
-    Path(version): Path<u64>,
-    State(state): State<AppState>,
-) -> Result<Response, ServerError> {
+async fn get_model(Path(version): Path<u64>, State(state): State<AppState>) -> Result<Response, ServerError> {
     let model = state.model.borrow().clone();
     if model.version != version {
-        return Err(ServerError::ModelVersion {
-            requested: version,
-            current: model.version,
-        });
+        return Err(ServerError::ModelVersion { requested: version, current: model.version });
     }
-    Ok((
-        [(CONTENT_TYPE, "application/octet-stream")],
-        model.safetensors.clone(),
-    )
-        .into_response())
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], model.safetensors.clone()).into_response())
 }

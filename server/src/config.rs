@@ -7,15 +7,9 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     #[error("reading {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
+    Read { path: String, source: std::io::Error },
     #[error("parsing {path}: {source}")]
-    Parse {
-        path: String,
-        source: Box<toml::de::Error>,
-    },
+    Parse { path: String, source: Box<toml::de::Error> },
     #[error("override `{0}` is not of the form key=value")]
     NotKeyValue(String),
     #[error("unknown config key `{key}`; known keys: {known}")]
@@ -95,8 +89,7 @@ pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
 
 impl Default for RunConfig {
     fn default() -> Self {
-        Self::from_toml(DEFAULT_CONFIG, "configs/default.toml")
-            .expect("configs/default.toml is valid")
+        Self::from_toml(DEFAULT_CONFIG, "configs/default.toml").expect("configs/default.toml is valid")
     }
 }
 
@@ -116,10 +109,8 @@ impl RunConfig {
     }
 
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: path.display().to_string(),
-            source,
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| ConfigError::Read { path: path.display().to_string(), source })?;
         Self::from_toml(&text, &path.display().to_string())
     }
 
@@ -131,27 +122,21 @@ impl RunConfig {
     pub fn with_overrides(&self, overrides: &str) -> Result<Self, ConfigError> {
         let mut table = toml::Table::try_from(self).expect("config serializes to a table");
         for pair in overrides.split_whitespace() {
-            let (key, raw) = pair
-                .split_once('=')
-                .ok_or_else(|| ConfigError::NotKeyValue(pair.into()))?;
+            let (key, raw) = pair.split_once('=').ok_or_else(|| ConfigError::NotKeyValue(pair.into()))?;
             let Some(current) = table.get(key) else {
                 return Err(ConfigError::UnknownKey {
                     key: key.into(),
                     known: table.keys().cloned().collect::<Vec<_>>().join(", "),
                 });
             };
-            let value = parse_value(raw, current).map_err(|message| ConfigError::BadValue {
-                key: key.into(),
-                message,
-            })?;
+            let value =
+                parse_value(raw, current).map_err(|message| ConfigError::BadValue { key: key.into(), message })?;
             table.insert(key.into(), value);
         }
-        let cfg: Self = table
-            .try_into()
-            .map_err(|e: toml::de::Error| ConfigError::BadValue {
-                key: "run-config".into(),
-                message: e.message().to_owned(),
-            })?;
+        let cfg: Self = table.try_into().map_err(|e: toml::de::Error| ConfigError::BadValue {
+            key: "run-config".into(),
+            message: e.message().to_owned(),
+        })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -159,19 +144,13 @@ impl RunConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let fail = |m: String| Err(ConfigError::Invalid(m));
         if !(self.fraction_fit > 0.0 && self.fraction_fit <= 1.0) {
-            return fail(format!(
-                "fraction-fit must be in (0, 1], got {}",
-                self.fraction_fit
-            ));
+            return fail(format!("fraction-fit must be in (0, 1], got {}", self.fraction_fit));
         }
         if self.min_fit == 0 {
             return fail("min-fit must be at least 1".into());
         }
         if self.min_clients < self.min_fit {
-            return fail(format!(
-                "min-clients ({}) must be at least min-fit ({})",
-                self.min_clients, self.min_fit
-            ));
+            return fail(format!("min-clients ({}) must be at least min-fit ({})", self.min_clients, self.min_fit));
         }
         if self.num_clients == 0 {
             return fail("num-clients must be at least 1".into());
@@ -189,10 +168,7 @@ impl RunConfig {
             return fail("round-deadline-ms must be at least 1".into());
         }
         if self.max_frame_bytes <= fedvla_federation::codec::HEADER_LEN {
-            return fail(format!(
-                "max-frame-bytes must exceed {}",
-                fedvla_federation::codec::HEADER_LEN
-            ));
+            return fail(format!("max-frame-bytes must exceed {}", fedvla_federation::codec::HEADER_LEN));
         }
         Ok(())
     }
@@ -201,9 +177,7 @@ impl RunConfig {
 /// Parses `raw` as a TOML value of the same type as `current`.
 fn parse_value(raw: &str, current: &toml::Value) -> Result<toml::Value, String> {
     use toml::Value;
-    let parsed = toml::from_str::<toml::Table>(&format!("v = {raw}"))
-        .ok()
-        .and_then(|mut t| t.remove("v"));
+    let parsed = toml::from_str::<toml::Table>(&format!("v = {raw}")).ok().and_then(|mut t| t.remove("v"));
     match (current, parsed) {
         (Value::String(_), Some(Value::String(s))) => Ok(Value::String(s)),
         (Value::String(_), _) => Ok(Value::String(raw.to_owned())),
@@ -223,10 +197,7 @@ mod tests {
     fn default_parses_and_round_trips() {
         let cfg = RunConfig::default();
         assert_eq!(cfg.strategy, StrategyKind::Fedavg);
-        assert_eq!(
-            RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(),
-            cfg
-        );
+        assert_eq!(RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(), cfg);
     }
 
     #[test]
@@ -242,9 +213,7 @@ mod tests {
     #[test]
     fn overrides_apply() {
         let cfg = RunConfig::default()
-            .with_overrides(
-                "num-server-rounds=5 fraction-fit=0.5 seed=7 lr=1 partitioning=iid dataset=/d/x",
-            )
+            .with_overrides("num-server-rounds=5 fraction-fit=0.5 seed=7 lr=1 partitioning=iid dataset=/d/x")
             .unwrap();
         assert_eq!(cfg.num_server_rounds, 5);
         assert_eq!(cfg.fraction_fit, 0.5);
@@ -258,29 +227,14 @@ mod tests {
     fn overrides_fail_clearly() {
         let base = RunConfig::default();
         let err = base.with_overrides("num-rounds=5").unwrap_err().to_string();
-        assert!(
-            err.starts_with("unknown config key `num-rounds`; known keys:"),
-            "{err}"
-        );
+        assert!(err.starts_with("unknown config key `num-rounds`; known keys:"), "{err}");
         assert!(err.contains("num-server-rounds"), "{err}");
         let err = base.with_overrides("seed=seven").unwrap_err().to_string();
         assert_eq!(err, "bad value for `seed`: `seven` is not of type integer");
-        let err = base
-            .with_overrides("strategy=fedmagic")
-            .unwrap_err()
-            .to_string();
+        let err = base.with_overrides("strategy=fedmagic").unwrap_err().to_string();
         assert!(err.contains("fedmagic") && err.contains("fedavg"), "{err}");
-        let err = base
-            .with_overrides("fraction-fit=1.5")
-            .unwrap_err()
-            .to_string();
-        assert_eq!(
-            err,
-            "invalid configuration: fraction-fit must be in (0, 1], got 1.5"
-        );
-        assert!(matches!(
-            base.with_overrides("seed"),
-            Err(ConfigError::NotKeyValue(_))
-        ));
+        let err = base.with_overrides("fraction-fit=1.5").unwrap_err().to_string();
+        assert_eq!(err, "invalid configuration: fraction-fit must be in (0, 1], got 1.5");
+        assert!(matches!(base.with_overrides("seed"), Err(ConfigError::NotKeyValue(_))));
     }
 }

@@ -10,8 +10,7 @@ use std::time::Duration;
 use axum::extract::ws::Message;
 use fedvla_federation::codec::decode_payload;
 use fedvla_federation::{
-    ClientMessage, CodecError, ErrorCode, NamedTensors, PROTOCOL_VERSION, Reassembler,
-    ServerMessage,
+    ClientMessage, CodecError, ErrorCode, NamedTensors, PROTOCOL_VERSION, Reassembler, ServerMessage,
 };
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
@@ -30,12 +29,7 @@ where
     R: Stream<Item = Result<Message, E>> + Unpin,
     E: Display,
 {
-    let mut conn = Connection {
-        sink,
-        state,
-        client_id: None,
-        upload: Upload::Idle,
-    };
+    let mut conn = Connection { sink, state, client_id: None, upload: Upload::Idle };
     let Some(mut outbox) = conn.join(&mut stream).await else {
         conn.close().await;
         return;
@@ -139,45 +133,28 @@ where
             },
         };
         let (name, capabilities) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
-            Ok(ClientMessage::Join {
-                protocol_version,
-                auth_token,
-                name,
-                capabilities,
-            }) => {
+            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities }) => {
                 if protocol_version != PROTOCOL_VERSION {
-                    let message = format!(
-                        "client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}"
-                    );
+                    let message =
+                        format!("client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}");
                     self.refuse(ErrorCode::ProtocolVersion, message).await;
                     return None;
                 }
                 if let Some(expected) = &self.state.auth_token
                     && auth_token.as_deref() != Some(expected)
                 {
-                    self.refuse(
-                        ErrorCode::Unauthorized,
-                        "missing or wrong auth token".into(),
-                    )
-                    .await;
+                    self.refuse(ErrorCode::Unauthorized, "missing or wrong auth token".into()).await;
                     return None;
                 }
                 (name, capabilities)
             }
             Ok(other) => {
-                self.refuse(
-                    ErrorCode::UnexpectedMessage,
-                    format!("the first message must be a join, got {other:?}"),
-                )
-                .await;
+                self.refuse(ErrorCode::UnexpectedMessage, format!("the first message must be a join, got {other:?}"))
+                    .await;
                 return None;
             }
             Err(e) => {
-                self.refuse(
-                    ErrorCode::MalformedMessage,
-                    format!("bad join message: {e}"),
-                )
-                .await;
+                self.refuse(ErrorCode::MalformedMessage, format!("bad join message: {e}")).await;
                 return None;
             }
         };
@@ -185,12 +162,7 @@ where
         self.client_id = Some(client_id);
         let (outbox, inbox) = mpsc::unbounded_channel();
         tracing::info!(client_id, %name, backend = %capabilities.backend, "client joined");
-        let joined = Event::Joined {
-            client_id,
-            name,
-            capabilities,
-            outbox,
-        };
+        let joined = Event::Joined { client_id, name, capabilities, outbox };
         if self.state.events.send(joined).await.is_err() {
             return None;
         }
@@ -211,105 +183,50 @@ where
         let client_id = self.client_id.expect("joined");
         if matches!(self.upload, Upload::Receiving { .. }) {
             self.upload = Upload::Idle;
-            return self
-                .refuse(
-                    ErrorCode::MalformedFrame,
-                    "control message in the middle of an update".into(),
-                )
-                .await;
+            return self.refuse(ErrorCode::MalformedFrame, "control message in the middle of an update".into()).await;
         }
         self.upload = Upload::Idle;
         let msg = match serde_json::from_str::<ClientMessage>(text) {
             Ok(msg) => msg,
             Err(e) => {
-                return self
-                    .refuse(
-                        ErrorCode::MalformedMessage,
-                        format!("bad control message: {e}"),
-                    )
-                    .await;
+                return self.refuse(ErrorCode::MalformedMessage, format!("bad control message: {e}")).await;
             }
         };
         let event = match msg {
             ClientMessage::Join { .. } => {
-                return self
-                    .refuse(ErrorCode::UnexpectedMessage, "already joined".into())
-                    .await;
+                return self.refuse(ErrorCode::UnexpectedMessage, "already joined".into()).await;
             }
             ClientMessage::Heartbeat => {
                 tracing::trace!(client_id, "heartbeat");
                 return Flow::Continue;
             }
-            ClientMessage::UpdateHeader {
-                round,
-                examples,
-                train_loss,
-                payload_bytes,
-            } => {
+            ClientMessage::UpdateHeader { round, examples, train_loss, payload_bytes } => {
                 let limit = self.state.limits.max_payload_bytes;
                 if payload_bytes > limit {
-                    return self
-                        .refuse_codec(CodecError::Oversized {
-                            len: payload_bytes,
-                            limit,
-                        })
-                        .await;
+                    return self.refuse_codec(CodecError::Oversized { len: payload_bytes, limit }).await;
                 }
-                let header = AnnouncedUpdate {
-                    round,
-                    examples,
-                    train_loss,
-                    payload_bytes,
-                };
-                self.upload = Upload::Receiving {
-                    header,
-                    reassembler: None,
-                    bytes: 0,
-                };
+                let header = AnnouncedUpdate { round, examples, train_loss, payload_bytes };
+                self.upload = Upload::Receiving { header, reassembler: None, bytes: 0 };
                 // For the console's client table: training is over, the update is on its way.
                 return self.emit(Event::Uploading { client_id }).await;
             }
             ClientMessage::Metrics(metrics) => Event::Metrics { client_id, metrics },
-            ClientMessage::RolloutResult {
-                round,
-                model_version,
-                episodes,
-            } => Event::RolloutResult {
-                client_id,
-                round,
-                model_version,
-                episodes,
-            },
-            ClientMessage::EvalResult {
-                round,
-                examples,
-                loss,
-            } => Event::EvalResult {
-                client_id,
-                round,
-                examples,
-                loss,
-            },
+            ClientMessage::RolloutResult { round, model_version, episodes } => {
+                Event::RolloutResult { client_id, round, model_version, episodes }
+            }
+            ClientMessage::EvalResult { round, examples, loss } => {
+                Event::EvalResult { client_id, round, examples, loss }
+            }
         };
         self.emit(event).await
     }
 
     async fn on_binary(&mut self, frame: &[u8]) -> Flow {
-        let Upload::Receiving {
-            header,
-            reassembler,
-            bytes,
-        } = &mut self.upload
-        else {
+        let Upload::Receiving { header, reassembler, bytes } = &mut self.upload else {
             if matches!(self.upload, Upload::Discarding) {
                 return Flow::Continue;
             }
-            return self
-                .refuse(
-                    ErrorCode::UnexpectedMessage,
-                    "binary frame without an update header".into(),
-                )
-                .await;
+            return self.refuse(ErrorCode::UnexpectedMessage, "binary frame without an update header".into()).await;
         };
         let header = *header;
         *bytes += frame.len() as u64;
@@ -334,10 +251,8 @@ where
             return Flow::Continue;
         }
         let bytes = *bytes;
-        let Upload::Receiving {
-            reassembler: Some(reassembler),
-            ..
-        } = std::mem::replace(&mut self.upload, Upload::Idle)
+        let Upload::Receiving { reassembler: Some(reassembler), .. } =
+            std::mem::replace(&mut self.upload, Upload::Idle)
         else {
             unreachable!("checked above")
         };
@@ -358,11 +273,7 @@ where
                     train_loss: header.train_loss,
                     bytes,
                 };
-                self.emit(Event::Update {
-                    client_id,
-                    update: Box::new(update),
-                })
-                .await
+                self.emit(Event::Update { client_id, update: Box::new(update) }).await
             }
             Err(e) => self.refuse_codec(e).await,
         }
@@ -378,11 +289,7 @@ where
         if !matches!(self.upload, Upload::Idle) {
             self.upload = Upload::Discarding;
         }
-        self.emit(Event::Rejected {
-            client_id: self.client_id,
-            code,
-        })
-        .await;
+        self.emit(Event::Rejected { client_id: self.client_id, code }).await;
         let flow = self.send(&ServerMessage::Error { code, message }).await;
         if code.is_fatal() { Flow::Close } else { flow }
     }
@@ -455,10 +362,7 @@ mod tests {
             let cancel = CancellationToken::new();
             let run_base = tempfile::tempdir().unwrap();
             let spec = tensors(0.0).spec();
-            let (_model_tx, model) = watch::channel(Arc::new(PublishedModel {
-                version: 0,
-                safetensors: Bytes::new(),
-            }));
+            let (_model_tx, model) = watch::channel(Arc::new(PublishedModel { version: 0, safetensors: Bytes::new() }));
             let state = AppState {
                 events: events_tx,
                 model,
@@ -470,7 +374,11 @@ mod tests {
                 volunteers: Arc::new(Volunteers::new(VolunteerOffer::bare("linreg"))),
                 sessions: Sessions::default(),
                 run_dir: RunDir::create(run_base.path(), &RunConfig::default()).unwrap(),
-                console: ConsoleHub::new("operator".into(), &RunConfig::default(), watch::channel(RunStatus::default()).1),
+                console: ConsoleHub::new(
+                    "operator".into(),
+                    &RunConfig::default(),
+                    watch::channel(RunStatus::default()).1,
+                ),
                 www_dir: Arc::new(std::path::PathBuf::from("www")),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
@@ -481,20 +389,11 @@ mod tests {
                 rx.recv().await.map(|m| (Ok::<_, Infallible>(m), rx))
             }));
             let task = tokio::spawn(handle_socket(sink, stream, state));
-            Self {
-                to_server,
-                from_server,
-                events,
-                cancel,
-                task,
-                _run_base: run_base,
-            }
+            Self { to_server, from_server, events, cancel, task, _run_base: run_base }
         }
 
         fn send(&self, msg: &ClientMessage) {
-            self.to_server
-                .send(Message::Text(serde_json::to_string(msg).unwrap().into()))
-                .unwrap();
+            self.to_server.send(Message::Text(serde_json::to_string(msg).unwrap().into())).unwrap();
         }
 
         async fn recv(&mut self) -> Message {
@@ -513,21 +412,13 @@ mod tests {
                 protocol_version: PROTOCOL_VERSION,
                 auth_token: token.map(str::to_owned),
                 name: "c".into(),
-                capabilities: Capabilities {
-                    backend: "test".into(),
-                    memory_bytes: 0,
-                },
+                capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
             });
         }
 
         fn upload(&self, t: &NamedTensors) {
             let payload_bytes = encode_payload(t).len() as u64;
-            self.send(&ClientMessage::UpdateHeader {
-                round: 3,
-                examples: 5,
-                train_loss: 0.25,
-                payload_bytes,
-            });
+            self.send(&ClientMessage::UpdateHeader { round: 3, examples: 5, train_loss: 0.25, payload_bytes });
             for frame in encode_update(t, 3, 40) {
                 self.to_server.send(Message::Binary(frame.into())).unwrap();
             }
@@ -538,36 +429,17 @@ mod tests {
     async fn join_update_refusal_outbox_and_shutdown() {
         let mut h = Harness::new();
         h.join(Some("secret"));
-        assert!(matches!(
-            h.recv_control().await,
-            ServerMessage::Welcome { client_id: 7, .. }
-        ));
-        let Some(Event::Joined {
-            client_id: 7,
-            outbox,
-            ..
-        }) = h.events.recv().await
-        else {
-            panic!("joined")
-        };
+        assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 7, .. }));
+        let Some(Event::Joined { client_id: 7, outbox, .. }) = h.events.recv().await else { panic!("joined") };
 
         h.upload(&tensors(0.5));
         assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 7 })));
         match h.events.recv().await {
-            Some(Event::Update {
-                client_id: 7,
-                update,
-            }) => {
+            Some(Event::Update { client_id: 7, update }) => {
                 assert_eq!(update.tensors, tensors(0.5));
-                assert_eq!(
-                    (update.round, update.examples, update.train_loss),
-                    (3, 5, 0.25)
-                );
+                assert_eq!((update.round, update.examples, update.train_loss), (3, 5, 0.25));
                 let frames = encode_update(&tensors(0.5), 3, 40);
-                assert_eq!(
-                    update.bytes,
-                    frames.iter().map(|f| f.len() as u64).sum::<u64>()
-                );
+                assert_eq!(update.bytes, frames.iter().map(|f| f.len() as u64).sum::<u64>());
             }
             other => panic!("expected update, got {other:?}"),
         }
@@ -576,38 +448,17 @@ mod tests {
         assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 7 })));
         assert!(matches!(
             h.events.recv().await,
-            Some(Event::Rejected {
-                client_id: Some(7),
-                code: ErrorCode::NonFinite
-            })
+            Some(Event::Rejected { client_id: Some(7), code: ErrorCode::NonFinite })
         ));
-        assert!(matches!(
-            h.recv_control().await,
-            ServerMessage::Error {
-                code: ErrorCode::NonFinite,
-                ..
-            }
-        ));
+        assert!(matches!(h.recv_control().await, ServerMessage::Error { code: ErrorCode::NonFinite, .. }));
 
         outbox.send(ServerMessage::Finished { rounds: 1 }).unwrap();
-        assert_eq!(
-            h.recv_control().await,
-            ServerMessage::Finished { rounds: 1 }
-        );
+        assert_eq!(h.recv_control().await, ServerMessage::Finished { rounds: 1 });
 
         h.cancel.cancel();
-        assert!(matches!(
-            h.recv_control().await,
-            ServerMessage::Error {
-                code: ErrorCode::ShuttingDown,
-                ..
-            }
-        ));
+        assert!(matches!(h.recv_control().await, ServerMessage::Error { code: ErrorCode::ShuttingDown, .. }));
         assert!(matches!(h.recv().await, Message::Close(_)));
-        assert!(matches!(
-            h.events.recv().await,
-            Some(Event::Left { client_id: 7 })
-        ));
+        assert!(matches!(h.events.recv().await, Some(Event::Left { client_id: 7 })));
         h.task.await.unwrap();
     }
 
@@ -615,20 +466,11 @@ mod tests {
     async fn wrong_token_is_refused_and_closed() {
         let mut h = Harness::new();
         h.join(Some("guess"));
-        assert!(matches!(
-            h.recv_control().await,
-            ServerMessage::Error {
-                code: ErrorCode::Unauthorized,
-                ..
-            }
-        ));
+        assert!(matches!(h.recv_control().await, ServerMessage::Error { code: ErrorCode::Unauthorized, .. }));
         assert!(matches!(h.recv().await, Message::Close(_)));
         assert!(matches!(
             h.events.recv().await,
-            Some(Event::Rejected {
-                client_id: None,
-                code: ErrorCode::Unauthorized
-            })
+            Some(Event::Rejected { client_id: None, code: ErrorCode::Unauthorized })
         ));
         h.task.await.unwrap();
     }

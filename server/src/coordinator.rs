@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
 use fedvla_federation::{
-    AggregateError, BoxError, Capabilities, ErrorCode, EvalMetrics, Evaluator, NamedTensors,
-    RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, Strategy,
+    AggregateError, BoxError, Capabilities, ErrorCode, EvalMetrics, Evaluator, NamedTensors, RolloutEpisode,
+    RolloutRequest, RoundMetrics, RoundTask, ServerMessage, Strategy,
 };
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -149,11 +149,7 @@ struct RoundState {
 
 impl Coordinator {
     pub async fn run(self) -> Result<RunStatus, CoordinatorError> {
-        let mut this = Running {
-            c: self,
-            clients: BTreeMap::new(),
-            round_rejections: BTreeMap::new(),
-        };
+        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new() };
         let result = this.run().await;
         match &result {
             Err(CoordinatorError::Cancelled) => tracing::info!("coordinator cancelled"),
@@ -180,9 +176,7 @@ impl Running {
             }
             None => {
                 let metrics = self.evaluate(0).await?;
-                let line = self
-                    .persist(0, json!({ "clients": [], "global": metrics }))
-                    .await?;
+                let line = self.persist(0, json!({ "clients": [], "global": metrics })).await?;
                 self.c.console.round_closed(0, 0, 0, Some(&line));
                 1
             }
@@ -236,13 +230,7 @@ impl Running {
             updates.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
             let accepted = updates.len() as u32;
             if updates.len() < self.c.config.min_fit {
-                tracing::warn!(
-                    round,
-                    attempt,
-                    updates = accepted,
-                    min_fit = self.c.config.min_fit,
-                    "round retried"
-                );
+                tracing::warn!(round, attempt, updates = accepted, min_fit = self.c.config.min_fit, "round retried");
                 self.broadcast(ServerMessage::RoundClosed {
                     round,
                     accepted: false,
@@ -255,15 +243,8 @@ impl Running {
                 continue;
             }
             let contributors: Vec<u64> = updates.iter().map(|(_, id, _)| *id).collect();
-            self.aggregate(
-                updates
-                    .into_iter()
-                    .map(|(_, _, u)| (u.tensors, u.examples))
-                    .collect(),
-            )
-            .await?;
-            let metrics = if round.is_multiple_of(self.c.config.eval_every)
-                || round == self.c.config.num_server_rounds
+            self.aggregate(updates.into_iter().map(|(_, _, u)| (u.tensors, u.examples)).collect()).await?;
+            let metrics = if round.is_multiple_of(self.c.config.eval_every) || round == self.c.config.num_server_rounds
             {
                 Some(self.evaluate(round).await?)
             } else {
@@ -321,16 +302,10 @@ impl Running {
     /// Samples clients and sends them their tasks.
     fn start_round(&mut self, round: u64, attempt: u64) -> RoundState {
         let cfg = &self.c.config;
-        let mut pool: Vec<(&str, u64)> = self
-            .clients
-            .iter()
-            .map(|(id, c)| (c.name.as_str(), *id))
-            .collect();
+        let mut pool: Vec<(&str, u64)> = self.clients.iter().map(|(id, c)| (c.name.as_str(), *id)).collect();
         pool.sort();
         let n = pool.len();
-        let k = ((cfg.fraction_fit * n as f64).ceil() as usize)
-            .max(cfg.min_fit)
-            .min(n);
+        let k = ((cfg.fraction_fit * n as f64).ceil() as usize).max(cfg.min_fit).min(n);
         let mut rng = StdRng::seed_from_u64(mix(mix(cfg.seed, round), attempt));
         let mut picked = rand::seq::index::sample(&mut rng, n, k).into_vec();
         picked.sort_unstable();
@@ -346,19 +321,16 @@ impl Running {
                 batch_size: cfg.batch_size,
                 lr: cfg.lr,
                 seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
-                strategy: self
-                    .c
-                    .strategy
-                    .lock()
-                    .expect("strategy lock")
-                    .client_params(),
+                strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
                 deadline_ms: cfg.round_deadline_ms,
                 eval_request: round.is_multiple_of(cfg.eval_every),
                 // Same seeds every round, so success rates compare across rounds.
-                rollout: (cfg.client_rollout_episodes > 0 && round.is_multiple_of(cfg.eval_every)).then(|| RolloutRequest {
-                    episodes: cfg.client_rollout_episodes,
-                    first_seed: CLIENT_ROLLOUT_SEED,
-                    max_frames: cfg.rollout_max_frames,
+                rollout: (cfg.client_rollout_episodes > 0 && round.is_multiple_of(cfg.eval_every)).then(|| {
+                    RolloutRequest {
+                        episodes: cfg.client_rollout_episodes,
+                        first_seed: CLIENT_ROLLOUT_SEED,
+                        max_frames: cfg.rollout_max_frames,
+                    }
                 }),
             };
             // Clients evaluate the model they start from (held-out loss, then sim rollouts) before they train.
@@ -368,32 +340,18 @@ impl Running {
                 ClientState::Training
             };
             rollouts_requested |= task.rollout.is_some();
-            self.clients[&client_id]
-                .outbox
-                .send(ServerMessage::RoundTask(task))
-                .ok();
+            self.clients[&client_id].outbox.send(ServerMessage::RoundTask(task)).ok();
             self.c.console.client_changed(client_id, |c| c.state = first_step);
-            participants.insert(
-                client_id,
-                Participant {
-                    name: name.to_owned(),
-                    ..Participant::default()
-                },
-            );
+            participants.insert(client_id, Participant { name: name.to_owned(), ..Participant::default() });
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
         self.c.console.round_started(round, attempt, participants.keys().copied().collect());
-        RoundState {
-            round,
-            participants,
-            rollouts_requested,
-        }
+        RoundState { round, participants, rollouts_requested }
     }
 
     /// Handles events until every participant is done or the deadline passes.
     async fn collect(&mut self, mut state: RoundState) -> Result<RoundState, CoordinatorError> {
-        let deadline =
-            tokio::time::Instant::now() + Duration::from_millis(self.c.config.round_deadline_ms);
+        let deadline = tokio::time::Instant::now() + Duration::from_millis(self.c.config.round_deadline_ms);
         while !state.participants.values().all(|p| p.done) {
             tokio::select! {
                 () = tokio::time::sleep_until(deadline) => {
@@ -417,12 +375,7 @@ impl Running {
         // Each event concerns at most one participant, so the map is taken once.
         let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
         match event {
-            Event::Joined {
-                client_id,
-                name,
-                capabilities,
-                outbox,
-            } => {
+            Event::Joined { client_id, name, capabilities, outbox } => {
                 tracing::debug!(client_id, ?capabilities, "registered");
                 self.c.console.client_joined(client_id, &name, &capabilities.backend);
                 self.clients.insert(client_id, ClientEntry { name, outbox });
@@ -435,23 +388,14 @@ impl Running {
                 }
             }
             Event::Update { client_id, update } => match participant(client_id) {
-                Some(p) if Some(update.round) == current && p.update.is_none() => {
-                    p.update = Some(*update)
-                }
+                Some(p) if Some(update.round) == current && p.update.is_none() => p.update = Some(*update),
                 _ => {
-                    let message = format!(
-                        "update for round {} is not expected (current round {current:?})",
-                        update.round
-                    );
+                    let message =
+                        format!("update for round {} is not expected (current round {current:?})", update.round);
                     tracing::warn!(client_id, %message, "refused update");
                     self.count(ErrorCode::StaleRound);
                     if let Some(c) = self.clients.get(&client_id) {
-                        c.outbox
-                            .send(ServerMessage::Error {
-                                code: ErrorCode::StaleRound,
-                                message,
-                            })
-                            .ok();
+                        c.outbox.send(ServerMessage::Error { code: ErrorCode::StaleRound, message }).ok();
                     }
                 }
             },
@@ -469,24 +413,14 @@ impl Running {
                     p.done = true;
                 }
             }
-            Event::EvalResult {
-                client_id,
-                round: r,
-                examples,
-                loss,
-            } => {
+            Event::EvalResult { client_id, round: r, examples, loss } => {
                 if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
                     p.eval = Some((examples, loss));
                     let next = if rollouts_requested { ClientState::Evaluating } else { ClientState::Training };
                     self.c.console.client_changed(client_id, |c| c.state = next);
                 }
             }
-            Event::RolloutResult {
-                client_id,
-                round: r,
-                model_version,
-                episodes,
-            } => {
+            Event::RolloutResult { client_id, round: r, model_version, episodes } => {
                 if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
                     let record = rollout_record(model_version, &episodes);
                     let dir = self.c.run_dir.client_eval_dir(r, client_id);
@@ -507,16 +441,12 @@ impl Running {
             }
         }
         let connected = self.clients.len();
-        self.c
-            .status_tx
-            .send_if_modified(|s| std::mem::replace(&mut s.connected, connected) != connected);
+        self.c.status_tx.send_if_modified(|s| std::mem::replace(&mut s.connected, connected) != connected);
     }
 
     fn count(&mut self, code: ErrorCode) {
         *self.round_rejections.entry(code).or_default() += 1;
-        self.c
-            .status_tx
-            .send_modify(|s| *s.rejections.entry(code).or_default() += 1);
+        self.c.status_tx.send_modify(|s| *s.rejections.entry(code).or_default() += 1);
     }
 
     fn broadcast(&self, msg: ServerMessage) {
@@ -525,19 +455,10 @@ impl Running {
         }
     }
 
-    async fn aggregate(
-        &mut self,
-        updates: Vec<(NamedTensors, u64)>,
-    ) -> Result<(), CoordinatorError> {
+    async fn aggregate(&mut self, updates: Vec<(NamedTensors, u64)>) -> Result<(), CoordinatorError> {
         let strategy = Arc::clone(&self.c.strategy);
         let global = Arc::clone(&self.c.global);
-        let result = blocking(move || {
-            strategy
-                .lock()
-                .expect("strategy lock")
-                .aggregate(&global, &updates)
-        })
-        .await;
+        let result = blocking(move || strategy.lock().expect("strategy lock").aggregate(&global, &updates)).await;
         self.c.global = Arc::new(result?);
         Ok(())
     }
@@ -545,8 +466,7 @@ impl Running {
     async fn evaluate(&mut self, round: u64) -> Result<EvalMetrics, CoordinatorError> {
         let evaluator = Arc::clone(&self.c.evaluator);
         let global = Arc::clone(&self.c.global);
-        let result =
-            blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&global)).await;
+        let result = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&global)).await;
         let metrics = result.map_err(CoordinatorError::Evaluate)?;
         tracing::info!(round, ?metrics, "global model evaluated");
         Ok(metrics)
@@ -559,34 +479,23 @@ impl Running {
         round: u64,
         mut line: serde_json::Value,
     ) -> Result<serde_json::Value, CoordinatorError> {
-        let rejections: BTreeMap<&str, u64> = std::mem::take(&mut self.round_rejections)
-            .into_iter()
-            .map(|(c, n)| (c.as_str(), n))
-            .collect();
+        let rejections: BTreeMap<&str, u64> =
+            std::mem::take(&mut self.round_rejections).into_iter().map(|(c, n)| (c.as_str(), n)).collect();
         line["round"] = json!(round);
         line["model_version"] = json!(round);
         line["model_crc32"] = json!(self.c.global.checksum());
         line["rejections"] = json!(rejections);
         line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
-        let (run_dir, exporters, global, config) = (
-            self.c.run_dir.clone(),
-            Arc::clone(&self.c.exporters),
-            Arc::clone(&self.c.global),
-            self.c.config.clone(),
-        );
+        let (run_dir, exporters, global, config) =
+            (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global), self.c.config.clone());
         let (line, bytes) = blocking(move || -> Result<_, RunDirError> {
             run_dir.save_model(round, &global, &exporters, &config)?;
             run_dir.append_metrics(&line)?;
-            let bytes = global
-                .to_safetensors()
-                .map_err(|source| RunDirError::Model { round, source })?;
+            let bytes = global.to_safetensors().map_err(|source| RunDirError::Model { round, source })?;
             Ok((line, bytes))
         })
         .await?;
-        self.c.model_tx.send_replace(Arc::new(PublishedModel {
-            version: round,
-            safetensors: Bytes::from(bytes),
-        }));
+        self.c.model_tx.send_replace(Arc::new(PublishedModel { version: round, safetensors: Bytes::from(bytes) }));
         self.c.completed = Some(round);
         self.c.status_tx.send_modify(|s| s.completed_rounds = round);
         tracing::info!(round, "round completed");
@@ -653,16 +562,12 @@ fn write_rollout_results(dir: &std::path::Path, record: &serde_json::Value) -> s
 
 /// splitmix64 of `a` combined with `b`: seeds derived per round, attempt and client.
 fn mix(a: u64, b: u64) -> u64 {
-    let mut z = a ^ b
-        .wrapping_add(0x9e37_79b9_7f4a_7c15)
-        .wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    let mut z = a ^ b.wrapping_add(0x9e37_79b9_7f4a_7c15).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
     z ^ (z >> 31)
 }
 
 fn fnv1a(s: &str) -> u64 {
-    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
-    })
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
 }

@@ -11,9 +11,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use fedvla_data::{
-    CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset,
-};
+use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
 use fedvla_sim::{Camera, Expert, FPS, Scene, TASK, render};
 
 /// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
@@ -31,11 +29,7 @@ pub struct GenDataOptions {
 
 impl Default for GenDataOptions {
     fn default() -> Self {
-        Self {
-            episodes: 50,
-            seed: 0,
-            image_size: 256,
-        }
+        Self { episodes: 50, seed: 0, image_size: 256 }
     }
 }
 
@@ -43,18 +37,9 @@ impl Default for GenDataOptions {
 #[derive(Debug, Clone, PartialEq)]
 pub enum GenProgress {
     /// A frame of episode `episode` was encoded; `total_frames` counts the whole dataset so far.
-    Frame {
-        episode: usize,
-        frame: usize,
-        episode_length: usize,
-        total_frames: u64,
-    },
+    Frame { episode: usize, frame: usize, episode_length: usize, total_frames: u64 },
     /// Episode `episode` (recorded from `seed`) is written.
-    EpisodeWritten {
-        episode: usize,
-        seed: u64,
-        frames: usize,
-    },
+    EpisodeWritten { episode: usize, seed: u64, frames: usize },
     /// The expert failed on `seed` within `frames` frames; no episode was recorded from it.
     Skipped { seed: u64, frames: u32 },
 }
@@ -100,10 +85,7 @@ pub fn generate_dataset(
         opts.image_size
     );
     let started = Instant::now();
-    let cameras = Camera::ALL
-        .iter()
-        .map(|c| CameraSpec::new(c.name(), opts.image_size, opts.image_size))
-        .collect();
+    let cameras = Camera::ALL.iter().map(|c| CameraSpec::new(c.name(), opts.image_size, opts.image_size)).collect();
     let mut spec = DatasetSpec::so100(cameras);
     spec.fps = FPS;
 
@@ -125,21 +107,15 @@ pub fn generate_dataset(
     let (written, seeds, skipped_seeds) = std::thread::scope(|scope| {
         let (episode_tx, episode_rx) = mpsc::sync_channel::<RecordedEpisode>(1);
         let recorder_events = events.clone();
-        let recorder =
-            scope.spawn(move || record_episodes(opts, max_failures, &episode_tx, &recorder_events));
+        let recorder = scope.spawn(move || record_episodes(opts, max_failures, &episode_tx, &recorder_events));
         let writer_events = events;
-        let encoder =
-            scope.spawn(move || write_episodes(writer, opts.episodes, &episode_rx, &writer_events));
+        let encoder = scope.spawn(move || write_episodes(writer, opts.episodes, &episode_rx, &writer_events));
         // Ends once the recorder and the writer (whose progress callback holds a sender) are done.
         for event in event_rx {
             progress(event);
         }
-        let recorded = recorder
-            .join()
-            .map_err(|_| anyhow::anyhow!("the episode recorder panicked"))?;
-        let written = encoder
-            .join()
-            .map_err(|_| anyhow::anyhow!("the dataset writer panicked"))?;
+        let recorded = recorder.join().map_err(|_| anyhow::anyhow!("the episode recorder panicked"))?;
+        let written = encoder.join().map_err(|_| anyhow::anyhow!("the dataset writer panicked"))?;
         // A recorder that stops early leaves the writer short of episodes: its error is the cause.
         let skipped = recorded?;
         let (written, seeds) = written?;
@@ -208,20 +184,9 @@ fn record_episode(seed: u64, size: u32) -> Result<Episode, u32> {
             .collect();
         let action = expert.act(&scene);
         scene.step(action);
-        frames.push(Frame {
-            state,
-            action: action.to_vec(),
-            images,
-        });
+        frames.push(Frame { state, action: action.to_vec(), images });
     }
-    if scene.success() {
-        Ok(Episode {
-            task: TASK.to_string(),
-            frames,
-        })
-    } else {
-        Err(scene.frame())
-    }
+    if scene.success() { Ok(Episode { task: TASK.to_string(), frames }) } else { Err(scene.frame()) }
 }
 
 /// Encodes the episodes received into `writer` and, once all `expected` arrived, finishes the dataset;
@@ -245,10 +210,6 @@ fn write_episodes(
         });
         seeds.push(recorded.seed);
     }
-    anyhow::ensure!(
-        seeds.len() == expected,
-        "recording stopped after {} of {expected} episodes",
-        seeds.len()
-    );
+    anyhow::ensure!(seeds.len() == expected, "recording stopped after {} of {expected} episodes", seeds.len());
     Ok((writer.finish()?, seeds))
 }

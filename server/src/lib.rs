@@ -13,7 +13,7 @@ pub mod native_client;
 pub mod run_dir;
 pub mod server;
 pub mod sim_eval;
+pub mod smolvla_workload;
 pub mod static_files;
 pub mod volunteer;
-pub mod smolvla_workload;
 pub mod workload;

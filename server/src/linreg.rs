@@ -3,8 +3,7 @@
 //! never crosses the wire, only the head (`head.weight`, `head.bias`) is trainable and exchanged.
 
 use fedvla_federation::{
-    BoxError, Capabilities, EvalMetrics, EvalOutput, Evaluator, LocalTrainer, NamedTensors,
-    RoundTask, TrainOutput,
+    BoxError, Capabilities, EvalMetrics, EvalOutput, Evaluator, LocalTrainer, NamedTensors, RoundTask, TrainOutput,
 };
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -38,9 +37,7 @@ impl World {
         let mut rng = StdRng::seed_from_u64(WORLD_SEED);
         let scale = 1.0 / (INPUTS as f32).sqrt();
         Self {
-            projection: (0..FEATURES * INPUTS)
-                .map(|_| rng.random_range(-scale..scale) * 2.0)
-                .collect(),
+            projection: (0..FEATURES * INPUTS).map(|_| rng.random_range(-scale..scale) * 2.0).collect(),
             true_weight: (0..FEATURES).map(|_| rng.random_range(-1.0..1.0)).collect(),
             true_bias: rng.random_range(-0.5..0.5),
         }
@@ -59,9 +56,7 @@ impl World {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut out = Examples::default();
         for _ in 0..n {
-            let x: Vec<f32> = (0..INPUTS)
-                .map(|_| rng.random_range(-1.0..1.0) + shift)
-                .collect();
+            let x: Vec<f32> = (0..INPUTS).map(|_| rng.random_range(-1.0..1.0) + shift).collect();
             let phi = self.features(&x);
             let y = dot(&self.true_weight, &phi) + self.true_bias + rng.random_range(-NOISE..NOISE);
             out.features.push(phi);
@@ -102,8 +97,7 @@ pub fn initial_model(seed: u64) -> NamedTensors {
     let mut rng = StdRng::seed_from_u64(seed);
     let mut t = NamedTensors::new();
     let weight = (0..FEATURES).map(|_| rng.random_range(-0.1..0.1)).collect();
-    t.insert(WEIGHT, vec![1, FEATURES], weight)
-        .expect("shape matches");
+    t.insert(WEIGHT, vec![1, FEATURES], weight).expect("shape matches");
     t.insert(BIAS, vec![1], vec![0.0]).expect("shape matches");
     t
 }
@@ -146,10 +140,7 @@ impl LinRegTrainer {
 
 impl LocalTrainer for LinRegTrainer {
     fn capabilities(&self) -> Capabilities {
-        Capabilities {
-            backend: "cpu-f32".into(),
-            memory_bytes: (self.train.len() * FEATURES * 4) as u64,
-        }
+        Capabilities { backend: "cpu-f32".into(), memory_bytes: (self.train.len() * FEATURES * 4) as u64 }
     }
 
     fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
@@ -204,10 +195,7 @@ impl LocalTrainer for LinRegTrainer {
     }
 
     async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
-        Ok(EvalOutput {
-            examples: self.heldout.len() as u64,
-            loss: self.heldout.mse(&self.weight, self.bias),
-        })
+        Ok(EvalOutput { examples: self.heldout.len() as u64, loss: self.heldout.mse(&self.weight, self.bias) })
     }
 }
 
@@ -219,9 +207,7 @@ pub struct LinRegEvaluator {
 
 impl Default for LinRegEvaluator {
     fn default() -> Self {
-        Self {
-            heldout: World::new().examples(WORLD_SEED ^ 0xe7a1, 256, 0.0),
-        }
+        Self { heldout: World::new().examples(WORLD_SEED ^ 0xe7a1, 256, 0.0) }
     }
 }
 
@@ -244,10 +230,7 @@ pub struct LinRegWorkload {
 
 impl LinRegWorkload {
     pub fn from_config(config: &RunConfig) -> Self {
-        Self {
-            seed: config.seed,
-            partitioning: config.partitioning,
-        }
+        Self { seed: config.seed, partitioning: config.partitioning }
     }
 }
 
@@ -290,10 +273,7 @@ mod tests {
             batch_size: 16,
             lr: 0.05,
             seed,
-            strategy: StrategyParams {
-                name: "fedavg".into(),
-                proximal_mu: 0.0,
-            },
+            strategy: StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
             deadline_ms: 1000,
             eval_request: false,
             rollout: None,

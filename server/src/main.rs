@@ -5,11 +5,7 @@ mod cmd;
 use clap::Parser;
 
 #[derive(Parser)]
-#[command(
-    name = "fedvla",
-    version,
-    about = "Federated learning of the SmolVLA robot policy"
-)]
+#[command(name = "fedvla", version, about = "Federated learning of the SmolVLA robot policy")]
 struct Cli {
     #[command(subcommand)]
     command: cmd::Command,

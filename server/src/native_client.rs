@@ -3,11 +3,11 @@
 use std::time::Instant;
 
 use burn::tensor::Device;
+use fedvla_data::ShardFileManifest;
 use fedvla_data::shard::verify_shard_bytes;
+use fedvla_federation::{BoxError, ClientTransport, Video, VolunteerSetup};
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::volunteer::{Downloads, volunteer_trainer};
-use fedvla_data::ShardFileManifest;
-use fedvla_federation::{BoxError, ClientTransport, Video, VolunteerSetup};
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
@@ -18,7 +18,11 @@ use tokio_tungstenite::tungstenite::http::Uri;
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
 /// One request over a fresh HTTP/1 connection to `authority`; a non-2xx status is an error carrying the body.
-pub async fn http_request(authority: &str, request: hyper::http::request::Builder, body: Bytes) -> Result<Vec<u8>, BoxError> {
+pub async fn http_request(
+    authority: &str,
+    request: hyper::http::request::Builder,
+    body: Bytes,
+) -> Result<Vec<u8>, BoxError> {
     let stream = TcpStream::connect(authority).await?;
     let (mut sender, conn) = hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
     let conn = tokio::spawn(conn);
@@ -37,7 +41,11 @@ pub async fn http_request(authority: &str, request: hyper::http::request::Builde
 
 /// A native SmolVLA volunteer: downloads what `setup` points at (frozen weights, global model, shard) and builds
 /// its trainer on the CPU, as the browser does in wasm.
-pub async fn smolvla_volunteer(transport: &NativeTransport, setup: &VolunteerSetup, name: &str) -> Result<SmolVlaTrainer, BoxError> {
+pub async fn smolvla_volunteer(
+    transport: &NativeTransport,
+    setup: &VolunteerSetup,
+    name: &str,
+) -> Result<SmolVlaTrainer, BoxError> {
     let frozen_url = setup.frozen_url.as_deref().ok_or("the server offers no frozen weights")?;
     let frozen = transport.get(frozen_url).await?;
     let global = transport.get(&format!("/model/{}", setup.model_version)).await?;
@@ -76,33 +84,16 @@ impl NativeTransport {
 
     /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored).
     pub async fn connect(server: &str) -> Result<Self, BoxError> {
-        let uri: Uri = if server.contains("://") {
-            server.parse()?
-        } else {
-            format!("ws://{server}").parse()?
-        };
+        let uri: Uri = if server.contains("://") { server.parse()? } else { format!("ws://{server}").parse()? };
         if !matches!(uri.scheme_str(), Some("ws" | "http")) {
-            return Err(format!(
-                "unsupported scheme in `{server}`: use ws:// or http:// (TLS is left to a proxy)"
-            )
-            .into());
+            return Err(
+                format!("unsupported scheme in `{server}`: use ws:// or http:// (TLS is left to a proxy)").into()
+            );
         }
-        let authority = uri
-            .authority()
-            .ok_or_else(|| format!("no host in `{server}`"))?
-            .to_string();
+        let authority = uri.authority().ok_or_else(|| format!("no host in `{server}`"))?.to_string();
         // Nagle off: an update is a small header message followed at once by frames.
-        let (ws, _) = tokio_tungstenite::connect_async_with_config(
-            format!("ws://{authority}/ws"),
-            None,
-            true,
-        )
-        .await?;
-        Ok(Self {
-            ws,
-            authority,
-            started: Instant::now(),
-        })
+        let (ws, _) = tokio_tungstenite::connect_async_with_config(format!("ws://{authority}/ws"), None, true).await?;
+        Ok(Self { ws, authority, started: Instant::now() })
     }
 }
 

@@ -24,18 +24,11 @@ pub const TRAINABLE_FILE: &str = "trainable.safetensors";
 #[derive(Debug, thiserror::Error)]
 pub enum RunDirError {
     #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
     #[error(transparent)]
     Config(#[from] ConfigError),
     #[error("{path} line {line}: {message}")]
-    Metrics {
-        path: PathBuf,
-        line: usize,
-        message: String,
-    },
+    Metrics { path: PathBuf, line: usize, message: String },
     #[error("global model of round {round}: {source}")]
     Model { round: u64, source: TensorError },
     #[error("exporting round {round}: {source}")]
@@ -43,10 +36,7 @@ pub enum RunDirError {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunDirError + '_ {
-    move |source| RunDirError::Io {
-        path: path.to_owned(),
-        source,
-    }
+    move |source| RunDirError::Io { path: path.to_owned(), source }
 }
 
 /// Writes one round's global model into a fresh directory. The LeRobot policy export plugs in here. `config` is
@@ -92,12 +82,7 @@ impl RunDir {
     /// Opens an existing run for `--resume`, with the config it was started with.
     pub fn open(path: &Path) -> Result<(Self, RunConfig), RunDirError> {
         let config = RunConfig::load(&path.join(CONFIG_FILE))?;
-        Ok((
-            Self {
-                path: path.to_owned(),
-            },
-            config,
-        ))
+        Ok((Self { path: path.to_owned() }, config))
     }
 
     pub fn path(&self) -> &Path {
@@ -123,16 +108,9 @@ impl RunDir {
         }
         let mut last = None;
         for (i, line) in complete.lines().enumerate() {
-            let err = |message: String| RunDirError::Metrics {
-                path: path.clone(),
-                line: i + 1,
-                message,
-            };
-            let value: serde_json::Value =
-                serde_json::from_str(line).map_err(|e| err(e.to_string()))?;
-            let round = value["round"]
-                .as_u64()
-                .ok_or_else(|| err("no `round`".into()))?;
+            let err = |message: String| RunDirError::Metrics { path: path.clone(), line: i + 1, message };
+            let value: serde_json::Value = serde_json::from_str(line).map_err(|e| err(e.to_string()))?;
+            let round = value["round"].as_u64().ok_or_else(|| err("no `round`".into()))?;
             if last.is_some_and(|l| round != l + 1) || (last.is_none() && round != 0) {
                 return Err(err(format!("round {round} does not follow round {last:?}")));
             }
@@ -144,11 +122,7 @@ impl RunDir {
     /// Appends one round's metrics line and syncs it to disk.
     pub fn append_metrics(&self, line: &serde_json::Value) -> Result<(), RunDirError> {
         let path = self.path.join(METRICS_FILE);
-        let mut file = OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .map_err(io(&path))?;
+        let mut file = OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
         let mut text = serde_json::to_string(line).expect("metrics serialize");
         text.push('\n');
         file.write_all(text.as_bytes()).map_err(io(&path))?;
@@ -179,9 +153,7 @@ impl RunDir {
         }
         fs::create_dir_all(&tmp).map_err(io(&tmp))?;
         for exporter in exporters {
-            exporter
-                .export(round, global, config, &tmp)
-                .map_err(|source| RunDirError::Export { round, source })?;
+            exporter.export(round, global, config, &tmp).map_err(|source| RunDirError::Export { round, source })?;
         }
         if dir.exists() {
             // Left by a run that crashed after saving but before its metrics line: this round is being redone.
@@ -193,18 +165,13 @@ impl RunDir {
     pub fn load_model(&self, round: u64) -> Result<NamedTensors, RunDirError> {
         let path = self.model_dir(round).join(TRAINABLE_FILE);
         let bytes = fs::read(&path).map_err(io(&path))?;
-        NamedTensors::from_safetensors(&bytes)
-            .map_err(|source| RunDirError::Model { round, source })
+        NamedTensors::from_safetensors(&bytes).map_err(|source| RunDirError::Model { round, source })
     }
 
     /// Opens `server.log` for appending.
     pub fn log_file(&self) -> Result<File, RunDirError> {
         let path = self.path.join(LOG_FILE);
-        OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .map_err(io(&path))
+        OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))
     }
 }
 
@@ -226,10 +193,8 @@ mod tests {
         let base = tempfile::tempdir().unwrap();
         let dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
         assert_eq!(dir.last_completed_round().unwrap(), None);
-        dir.append_metrics(&serde_json::json!({"round": 0}))
-            .unwrap();
-        dir.append_metrics(&serde_json::json!({"round": 1}))
-            .unwrap();
+        dir.append_metrics(&serde_json::json!({"round": 0})).unwrap();
+        dir.append_metrics(&serde_json::json!({"round": 1})).unwrap();
         let path = dir.path().join(METRICS_FILE);
         let mut f = OpenOptions::new().append(true).open(&path).unwrap();
         f.write_all(b"{\"round\": 2, \"glo").unwrap();

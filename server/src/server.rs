@@ -15,11 +15,11 @@ use tokio_util::sync::CancellationToken;
 
 use crate::app::{AppState, PublishedModel, app};
 use crate::config::{RunConfig, StrategyKind};
-use crate::workload::Workload;
 use crate::console::{ConsoleHub, random_token};
 use crate::coordinator::{Coordinator, CoordinatorError, RunStatus};
 use crate::run_dir::{ModelExporter, RunDir, RunDirError, TrainableSafetensors};
 use crate::volunteer::{Sessions, VolunteerOffer, Volunteers};
+use crate::workload::Workload;
 
 /// Headroom over the exact update size before an update counts as oversized.
 const UPDATE_HEADROOM_BYTES: u64 = 64 * 1024;
@@ -79,15 +79,7 @@ pub struct ServerHandle {
 
 /// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
 pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, StartError> {
-    let ServerParts {
-        config,
-        run_dir,
-        initial,
-        strategy,
-        evaluator,
-        exporters,
-        volunteer,
-    } = parts;
+    let ServerParts { config, run_dir, initial, strategy, evaluator, exporters, volunteer } = parts;
     let spec = Arc::new(initial.spec());
     let completed = run_dir.last_completed_round()?;
     let global = match completed {
@@ -100,14 +92,8 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     };
     let version = completed.unwrap_or(0);
     let bytes = global.to_safetensors().map_err(StartError::Spec)?;
-    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel {
-        version,
-        safetensors: Bytes::from(bytes),
-    }));
-    let (status_tx, status) = watch::channel(RunStatus {
-        completed_rounds: version,
-        ..RunStatus::default()
-    });
+    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel { version, safetensors: Bytes::from(bytes) }));
+    let (status_tx, status) = watch::channel(RunStatus { completed_rounds: version, ..RunStatus::default() });
     let (events_tx, events) = mpsc::channel(1024);
     let generated_token = config.operator_token.is_empty();
     let operator_token = if generated_token { random_token() } else { config.operator_token.clone() };
@@ -153,9 +139,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
                 tracing::debug!(error = %e, "TCP_NODELAY not set");
             }
         });
-        axum::serve(listener, app(state))
-            .with_graceful_shutdown(shutdown.cancelled_owned())
-            .await
+        axum::serve(listener, app(state)).with_graceful_shutdown(shutdown.cancelled_owned()).await
     });
     tracing::info!(%addr, "listening");
     if generated_token {
@@ -163,14 +147,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     } else {
         tracing::info!("console: http://{addr}/console  (token: operator-token of the run configuration)");
     }
-    Ok(ServerHandle {
-        addr,
-        cancel,
-        status,
-        operator_token,
-        coordinator,
-        http,
-    })
+    Ok(ServerHandle { addr, cancel, status, operator_token, coordinator, http })
 }
 
 impl ServerHandle {

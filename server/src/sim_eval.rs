@@ -53,12 +53,7 @@ pub struct SimEvalOptions {
 
 impl Default for SimEvalOptions {
     fn default() -> Self {
-        Self {
-            episodes: 10,
-            seed: DEFAULT_SEED,
-            max_frames: DEFAULT_MAX_FRAMES,
-            video_size: Some(DEFAULT_VIDEO_SIZE),
-        }
+        Self { episodes: 10, seed: DEFAULT_SEED, max_frames: DEFAULT_MAX_FRAMES, video_size: Some(DEFAULT_VIDEO_SIZE) }
     }
 }
 
@@ -108,9 +103,7 @@ pub fn evaluate_in_sim(
     let mut video_errors = Vec::new();
     for i in 0..opts.episodes {
         let seed = opts.seed + i as u64;
-        let mut film = opts
-            .video_size
-            .map(|size| Film::start(&video_path(out, i), size));
+        let mut film = opts.video_size.map(|size| Film::start(&video_path(out, i), size));
         let mut on_frame = |scene: &Scene| {
             if let Some(film) = &mut film {
                 film.record(scene);
@@ -175,17 +168,14 @@ impl Film {
         let cameras = Camera::ALL.len() as u32;
         // One key frame a second: browsers seek quickly enough, and the files stay small.
         let encoding = VideoEncoding { gop: FPS, ..VideoEncoding::default() };
-        let writer = CameraVideoWriter::create(path, size * cameras, size, FPS, encoding)
-            .map_err(|e| e.to_string());
+        let writer = CameraVideoWriter::create(path, size * cameras, size, FPS, encoding).map_err(|e| e.to_string());
         Self { path: path.to_path_buf(), size, writer }
     }
 
     fn record(&mut self, scene: &Scene) {
         let Ok(writer) = &mut self.writer else { return };
         let frame = side_by_side(scene, self.size as usize);
-        if let Err(e) = RgbImage::new(frame.0, self.size, frame.1)
-            .and_then(|image| writer.push_frame(&image))
-        {
+        if let Err(e) = RgbImage::new(frame.0, self.size, frame.1).and_then(|image| writer.push_frame(&image)) {
             self.writer = Err(e.to_string());
         }
     }
@@ -203,10 +193,7 @@ impl Film {
 
 /// Renders every camera at `size`x`size` and lays them out left to right: (width, RGB HWC).
 fn side_by_side(scene: &Scene, size: usize) -> (u32, Vec<u8>) {
-    let views: Vec<Vec<u8>> = Camera::ALL
-        .iter()
-        .map(|&camera| render(scene, camera, size, size))
-        .collect();
+    let views: Vec<Vec<u8>> = Camera::ALL.iter().map(|&camera| render(scene, camera, size, size)).collect();
     let row = size * 3;
     let mut data = Vec::with_capacity(views.len() * row * size);
     for y in 0..size {

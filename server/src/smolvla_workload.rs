@@ -7,18 +7,21 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use burn::tensor::Device;
-use fedvla_data::{ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard, episode_tasks, partition};
+use fedvla_data::{
+    ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard,
+    episode_tasks, partition,
+};
 use fedvla_federation::{BoxError, Evaluator, NamedTensors};
-use fedvla_learner::tensors::{to_named, to_weights};
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::rollout::TaskTokens;
+use fedvla_learner::tensors::{to_named, to_weights};
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes};
-use fedvla_sim::TASK;
 use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, Tokenizer, WeightMap, WordTokenizer};
+use fedvla_sim::TASK;
 
 use crate::config::{Partitioning, RunConfig};
 use crate::datagen::{GenDataOptions, generate_dataset};
@@ -55,8 +58,13 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
         root.display(),
         crate::config::EMBEDDED_DATASET
     );
-    eprintln!("recording the embedded SO-100 dataset ({} expert episodes) into {}", config.dataset_episodes, root.display());
-    let options = GenDataOptions { episodes: config.dataset_episodes, seed: config.seed, image_size: image_size as u32 };
+    eprintln!(
+        "recording the embedded SO-100 dataset ({} expert episodes) into {}",
+        config.dataset_episodes,
+        root.display()
+    );
+    let options =
+        GenDataOptions { episodes: config.dataset_episodes, seed: config.seed, image_size: image_size as u32 };
     generate_dataset(&root, &options, |_| {})?;
     Ok(root)
 }
@@ -95,7 +103,10 @@ fn norm_stats(dataset: &LeRobotDataset) -> anyhow::Result<NormStats> {
         let s = stats.get(feature).with_context(|| format!("meta/stats.json has no {feature}"))?;
         out.features.insert(
             feature.into(),
-            FeatureStats { mean: s.mean.iter().map(|&v| v as f32).collect(), std: s.std.iter().map(|&v| v as f32).collect() },
+            FeatureStats {
+                mean: s.mean.iter().map(|&v| v as f32).collect(),
+                std: s.std.iter().map(|&v| v as f32).collect(),
+            },
         );
     }
     Ok(out)
@@ -140,7 +151,8 @@ impl SmolVlaWorkload {
         let client_shards = (0..config.num_clients)
             .map(|k| {
                 let path = shard_dir.join(format!("client_{k}.safetensors"));
-                build_shard(&dataset, &parts, k, &spec, Some(&tokenize), &path).with_context(|| format!("building shard {k}"))?;
+                build_shard(&dataset, &parts, k, &spec, Some(&tokenize), &path)
+                    .with_context(|| format!("building shard {k}"))?;
                 Ok(path)
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
@@ -150,7 +162,8 @@ impl SmolVlaWorkload {
             ..parts.clone()
         };
         let server_shard = shard_dir.join("server_heldout.safetensors");
-        build_shard(&dataset, &server_parts, 0, &spec, Some(&tokenize), &server_shard).context("building the server's held-out shard")?;
+        build_shard(&dataset, &server_parts, 0, &spec, Some(&tokenize), &server_shard)
+            .context("building the server's held-out shard")?;
         let weights = match &config.init_policy {
             path if path.is_empty() => init_random(&cfg.param_specs(), config.seed),
             path => {
@@ -163,7 +176,15 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
-        Ok(Self { stats: norm_stats(&dataset)?, cfg, weights, tokenizer, client_shards, server_shard, seed: config.seed })
+        Ok(Self {
+            stats: norm_stats(&dataset)?,
+            cfg,
+            weights,
+            tokenizer,
+            client_shards,
+            server_shard,
+            seed: config.seed,
+        })
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -207,10 +228,24 @@ impl ModelExporter for SimRollouts {
         weights.extend(to_weights(global));
         let policy = SimPolicy::new(&self.cfg, &weights, self.stats.clone(), &self.tokenizer, &Device::flex())?;
         let source = format!("global model of round {round}");
-        let options = SimEvalOptions { episodes: config.rollout_episodes, video_size: Some(ROLLOUT_VIDEO_SIZE), ..SimEvalOptions::default() };
-        let summary = evaluate_in_sim(Agent::Policy { policy: &policy, source: &source }, &options, &dir.join(ROLLOUTS_DIR), |_, _| {})
-            .map_err(|e| format!("{e:#}"))?;
-        tracing::info!(round, success_rate = summary.success_rate, mean_length = summary.mean_length, "global model rolled out in the sim");
+        let options = SimEvalOptions {
+            episodes: config.rollout_episodes,
+            video_size: Some(ROLLOUT_VIDEO_SIZE),
+            ..SimEvalOptions::default()
+        };
+        let summary = evaluate_in_sim(
+            Agent::Policy { policy: &policy, source: &source },
+            &options,
+            &dir.join(ROLLOUTS_DIR),
+            |_, _| {},
+        )
+        .map_err(|e| format!("{e:#}"))?;
+        tracing::info!(
+            round,
+            success_rate = summary.success_rate,
+            mean_length = summary.mean_length,
+            "global model rolled out in the sim"
+        );
         Ok(())
     }
 }
@@ -286,10 +321,14 @@ impl Workload for SmolVlaWorkload {
     }
 
     fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError> {
-        let path = self.client_shards.get(shard).ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
+        let path = self
+            .client_shards
+            .get(shard)
+            .ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
         let examples = self.examples(path)?;
         // Each client draws its own noise and times, reproducibly.
         let seed = self.seed ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        Ok(SmolVlaTrainer::new(&self.cfg, &self.weights, examples, seed, &Device::flex().autodiff(), "cpu-flex")?.with_rollouts(self.task_tokens()))
+        Ok(SmolVlaTrainer::new(&self.cfg, &self.weights, examples, seed, &Device::flex().autodiff(), "cpu-flex")?
+            .with_rollouts(self.task_tokens()))
     }
 }

@@ -8,6 +8,7 @@ use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
+use axum::Json;
 use axum::Router;
 use axum::body::Bytes;
 use axum::extract::{DefaultBodyLimit, Path, State};
@@ -15,7 +16,6 @@ use axum::http::header::{AUTHORIZATION, CACHE_CONTROL, CONTENT_TYPE};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use axum::Json;
 use fedvla_federation::{PROTOCOL_VERSION, VolunteerSetup};
 use sha2::{Digest, Sha256};
 
@@ -181,6 +181,8 @@ async fn post_video(
     tokio::fs::create_dir_all(&dir).await.map_err(|e| ServerError::Storage(format!("{}: {e}", dir.display())))?;
     tokio::fs::write(&path, &body).await.map_err(|e| ServerError::Storage(format!("{}: {e}", path.display())))?;
     tracing::info!(client_id, round, file = %path.display(), bytes = len, "rollout video stored");
-    state.console.publish(serde_json::json!({ "type": "video_stored", "round": round, "client_id": client_id, "file": file }));
+    state
+        .console
+        .publish(serde_json::json!({ "type": "video_stored", "round": round, "client_id": client_id, "file": file }));
     Ok((StatusCode::CREATED, format!("stored {len} bytes")).into_response())
 }

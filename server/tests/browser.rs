@@ -61,14 +61,25 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
 }
 
 fn metrics(run_dir: &RunDir) -> Vec<Value> {
-    std::fs::read_to_string(run_dir.path().join(METRICS_FILE)).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    std::fs::read_to_string(run_dir.path().join(METRICS_FILE))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
 }
 
 /// The metrics record of `name` in round `round`.
 fn client_record(run_dir: &RunDir, round: u64, name: &str) -> Value {
     let lines = metrics(run_dir);
-    let line = lines.iter().find(|l| l["round"] == round).unwrap_or_else(|| panic!("no metrics line for round {round}"));
-    line["clients"].as_array().unwrap().iter().find(|c| c["name"] == name).cloned().unwrap_or_else(|| panic!("round {round} has no record of {name}: {line}"))
+    let line =
+        lines.iter().find(|l| l["round"] == round).unwrap_or_else(|| panic!("no metrics line for round {round}"));
+    line["clients"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["name"] == name)
+        .cloned()
+        .unwrap_or_else(|| panic!("round {round} has no record of {name}: {line}"))
 }
 
 async fn wait_rounds(handle: &ServerHandle, rounds: u64) {
@@ -113,7 +124,11 @@ async fn a_browser_trains_a_round_beside_a_native_client_uploads_its_rollout_and
     assert_eq!(rollout["episodes"][0]["video"], "episode_0.webm", "{record}");
     let client_dir = run_dir.path().join(format!("evaluate/round_1/client_{}", record["client_id"]));
     let video = std::fs::read(client_dir.join("episode_0.webm")).expect("the browser's rollout video is stored");
-    assert!(video.len() > 1000 && video.starts_with(&[0x1a, 0x45, 0xdf, 0xa3]), "a WebM (EBML) file, got {} bytes", video.len());
+    assert!(
+        video.len() > 1000 && video.starts_with(&[0x1a, 0x45, 0xdf, 0xa3]),
+        "a WebM (EBML) file, got {} bytes",
+        video.len()
+    );
     let results: Value = serde_json::from_slice(&std::fs::read(client_dir.join("results.json")).unwrap()).unwrap();
     assert_eq!(results["model_version"], 0);
     let timing = browser.eval("return document.getElementById('step').textContent + '; first step after ' + document.getElementById('first-step').textContent").await;
@@ -125,9 +140,27 @@ async fn a_browser_trains_a_round_beside_a_native_client_uploads_its_rollout_and
     browser.goto(&format!("{base}/console")).await;
     browser.type_into("#token-input", OPERATOR_TOKEN).await;
     browser.click("#login-button").await;
-    browser.wait_for("round 1 in the held-out loss chart", Duration::from_secs(30), "return !!document.querySelector('#chart-heldout-loss [data-round=\"1\"]')").await;
-    browser.wait_for("round 1 in the train loss chart", Duration::from_secs(30), "return !!document.querySelector('#chart-train-loss [data-round=\"1\"]')").await;
-    browser.wait_for("the browser's video in the gallery", Duration::from_secs(30), "return !!document.querySelector('#gallery section[data-round=\"1\"] video[src*=\"episode_0.webm\"]')").await;
+    browser
+        .wait_for(
+            "round 1 in the held-out loss chart",
+            Duration::from_secs(30),
+            "return !!document.querySelector('#chart-heldout-loss [data-round=\"1\"]')",
+        )
+        .await;
+    browser
+        .wait_for(
+            "round 1 in the train loss chart",
+            Duration::from_secs(30),
+            "return !!document.querySelector('#chart-train-loss [data-round=\"1\"]')",
+        )
+        .await;
+    browser
+        .wait_for(
+            "the browser's video in the gallery",
+            Duration::from_secs(30),
+            "return !!document.querySelector('#gallery section[data-round=\"1\"] video[src*=\"episode_0.webm\"]')",
+        )
+        .await;
     browser.screenshot(&screenshot_dir().join("console-after-round.png")).await;
     let errors = browser.page_errors().await;
     assert!(errors.is_empty(), "JavaScript errors on the console: {errors:?}");
@@ -143,7 +176,11 @@ async fn a_browser_reloaded_mid_round_does_not_stall_the_round_and_rejoins() {
     }
     let tmp = tempfile::tempdir().unwrap();
     // min-fit 1: the round the browser walks out of closes with the native update alone.
-    let (handle, run_dir) = start_server(tmp.path(), "num-server-rounds=2 min-fit=1 local-steps=40 client-rollout-episodes=0 round-deadline-ms=240000").await;
+    let (handle, run_dir) = start_server(
+        tmp.path(),
+        "num-server-rounds=2 min-fit=1 local-steps=40 client-rollout-episodes=0 round-deadline-ms=240000",
+    )
+    .await;
     let base = format!("http://{}", handle.addr());
     let native = native_volunteer(handle.addr());
     let browser = Browser::launch(&[]).await;

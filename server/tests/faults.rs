@@ -7,8 +7,7 @@ use std::time::{Duration, Instant};
 use common::*;
 use fedvla_federation::codec::{encode_payload, encode_update};
 use fedvla_federation::{
-    ClientMessage, ErrorCode, NamedTensors, PROTOCOL_VERSION, RoundMetrics, ServerMessage,
-    TrainOutput,
+    ClientMessage, ErrorCode, NamedTensors, PROTOCOL_VERSION, RoundMetrics, ServerMessage, TrainOutput,
 };
 use fedvla_server::linreg::{self, BIAS, FEATURES, WEIGHT};
 use fedvla_server::run_dir::RunDir;
@@ -19,28 +18,17 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     let cfg = config("num-server-rounds=1 min-clients=5 min-fit=2 round-deadline-ms=1500");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
-    let good: Vec<_> = (0..2)
-        .map(|shard| spawn_client(&handle, shard, None))
-        .collect();
+    let good: Vec<_> = (0..2).map(|shard| spawn_client(&handle, shard, None)).collect();
     let (straggler, _) = spawn_client(&handle, 2, Some(1));
     // A client that takes its task and disconnects without answering.
     let (mut dropper, _) = RawClient::join(&handle, "client-3").await;
     // A client that uploads its update, then disconnects before the round closes: its update still counts.
     let (mut leaver, _) = RawClient::join(&handle, "client-4").await;
     let started = Instant::now();
-    assert!(matches!(
-        dropper.recv().await,
-        Some(ServerMessage::RoundTask(_))
-    ));
+    assert!(matches!(dropper.recv().await, Some(ServerMessage::RoundTask(_))));
     drop(dropper);
-    let Some(ServerMessage::RoundTask(task)) = leaver.recv().await else {
-        panic!("task")
-    };
-    let leaver_update = TrainOutput {
-        update: head(vec![0.25; FEATURES], vec![-0.5]),
-        examples: 10,
-        train_loss: 1.0,
-    };
+    let Some(ServerMessage::RoundTask(task)) = leaver.recv().await else { panic!("task") };
+    let leaver_update = TrainOutput { update: head(vec![0.25; FEATURES], vec![-0.5]), examples: 10, train_loss: 1.0 };
     let payload = encode_payload(&leaver_update.update);
     leaver
         .send(&ClientMessage::UpdateHeader {
@@ -68,14 +56,8 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     let status = handle.finish().await.unwrap();
     let elapsed = started.elapsed();
     assert_eq!(status.completed_rounds, 1);
-    assert!(
-        elapsed >= Duration::from_millis(1400),
-        "closed at the deadline, not before: {elapsed:?}"
-    );
-    assert!(
-        elapsed < Duration::from_secs(8),
-        "closed at the deadline, not after: {elapsed:?}"
-    );
+    assert!(elapsed >= Duration::from_millis(1400), "closed at the deadline, not before: {elapsed:?}");
+    assert!(elapsed < Duration::from_secs(8), "closed at the deadline, not after: {elapsed:?}");
     straggler.abort();
 
     let mut updates: Vec<TrainOutput> = Vec::new();
@@ -85,11 +67,7 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     }
     assert_eq!(updates.len(), 2);
     updates.push(leaver_update);
-    assert_close(
-        &run_dir.load_model(1).unwrap(),
-        &weighted_mean(&updates),
-        1e-6,
-    );
+    assert_close(&run_dir.load_model(1).unwrap(), &weighted_mean(&updates), 1e-6);
     let line = &metrics(run_dir.path())[1];
     let accepted: Vec<&str> = line["clients"]
         .as_array()
@@ -149,10 +127,7 @@ fn expect_error(reply: Option<ServerMessage>, code: ErrorCode, needle: &str) {
     match reply {
         Some(ServerMessage::Error { code: got, message }) => {
             assert_eq!(got, code, "{message}");
-            assert!(
-                message.contains(needle),
-                "`{message}` should mention `{needle}`"
-            );
+            assert!(message.contains(needle), "`{message}` should mention `{needle}`");
         }
         other => panic!("expected {code:?} error, got {other:?}"),
     }
@@ -169,34 +144,15 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     // Wrong protocol version on join: refused and disconnected.
     let mut c = RawClient::connect(&handle).await;
     c.send(&join_message("old", PROTOCOL_VERSION + 1)).await;
-    expect_error(
-        c.recv().await,
-        ErrorCode::ProtocolVersion,
-        &format!("protocol version {}", PROTOCOL_VERSION + 1),
-    );
-    assert_eq!(
-        c.recv().await,
-        None,
-        "connection closed after a fatal error"
-    );
+    expect_error(c.recv().await, ErrorCode::ProtocolVersion, &format!("protocol version {}", PROTOCOL_VERSION + 1));
+    assert_eq!(c.recv().await, None, "connection closed after a fatal error");
 
     // Non-fatal errors, one connection.
     let (mut c, _) = RawClient::join(&handle, "bad").await;
-    c.send_text("{\"type\":\"metrics\", \"round\": \"one\"}".into())
-        .await;
-    expect_error(
-        c.recv().await,
-        ErrorCode::MalformedMessage,
-        "bad control message",
-    );
+    c.send_text("{\"type\":\"metrics\", \"round\": \"one\"}".into()).await;
+    expect_error(c.recv().await, ErrorCode::MalformedMessage, "bad control message");
 
-    c.send(&ClientMessage::UpdateHeader {
-        round: 1,
-        examples: 1,
-        train_loss: 0.0,
-        payload_bytes: 12,
-    })
-    .await;
+    c.send(&ClientMessage::UpdateHeader { round: 1, examples: 1, train_loss: 0.0, payload_bytes: 12 }).await;
     c.send_binary(b"definitely not a frame".to_vec()).await;
     expect_error(c.recv().await, ErrorCode::MalformedFrame, "magic");
 
@@ -204,105 +160,49 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     c.send_binary(vec![0; 8]).await;
     c.send(&ClientMessage::Heartbeat).await;
     c.send_binary(vec![0; 8]).await;
-    expect_error(
-        c.recv().await,
-        ErrorCode::UnexpectedMessage,
-        "without an update header",
-    );
+    expect_error(c.recv().await, ErrorCode::UnexpectedMessage, "without an update header");
 
     let missing = {
         let mut t = NamedTensors::new();
-        t.insert(WEIGHT, vec![1, FEATURES], good_weight.clone())
-            .unwrap();
+        t.insert(WEIGHT, vec![1, FEATURES], good_weight.clone()).unwrap();
         t
     };
-    expect_error(
-        upload(&mut c, &missing).await,
-        ErrorCode::MissingTensor,
-        BIAS,
-    );
+    expect_error(upload(&mut c, &missing).await, ErrorCode::MissingTensor, BIAS);
 
     let mut extra = head(good_weight.clone(), vec![0.0]);
-    extra
-        .insert("vision.frozen", vec![2], vec![0.0; 2])
-        .unwrap();
-    expect_error(
-        upload(&mut c, &extra).await,
-        ErrorCode::UnexpectedTensor,
-        "vision.frozen",
-    );
+    extra.insert("vision.frozen", vec![2], vec![0.0; 2]).unwrap();
+    expect_error(upload(&mut c, &extra).await, ErrorCode::UnexpectedTensor, "vision.frozen");
 
     let misshaped = head(good_weight.clone(), vec![0.0, 0.0]);
-    expect_error(
-        upload(&mut c, &misshaped).await,
-        ErrorCode::ShapeMismatch,
-        "expected [1]",
-    );
+    expect_error(upload(&mut c, &misshaped).await, ErrorCode::ShapeMismatch, "expected [1]");
 
     let mut nan_weight = good_weight.clone();
     nan_weight[5] = f32::NAN;
-    expect_error(
-        upload(&mut c, &head(nan_weight, vec![0.0])).await,
-        ErrorCode::NonFinite,
-        "index 5",
-    );
+    expect_error(upload(&mut c, &head(nan_weight, vec![0.0])).await, ErrorCode::NonFinite, "index 5");
 
-    c.send(&ClientMessage::UpdateHeader {
-        round: 1,
-        examples: 1,
-        train_loss: 0.0,
-        payload_bytes: 1 << 30,
-    })
-    .await;
+    c.send(&ClientMessage::UpdateHeader { round: 1, examples: 1, train_loss: 0.0, payload_bytes: 1 << 30 }).await;
     expect_error(c.recv().await, ErrorCode::Oversized, "1073741824");
 
     let frames = encode_update(&head(good_weight.clone(), vec![0.0]), 1, 1 << 16);
     let payload_bytes = (frames[0].len() - fedvla_federation::codec::HEADER_LEN) as u64;
-    c.send(&ClientMessage::UpdateHeader {
-        round: 1,
-        examples: 1,
-        train_loss: 0.0,
-        payload_bytes,
-    })
-    .await;
+    c.send(&ClientMessage::UpdateHeader { round: 1, examples: 1, train_loss: 0.0, payload_bytes }).await;
     c.send_binary(frames[0].clone()).await;
     expect_error(c.recv().await, ErrorCode::Oversized, "frame limit");
 
     let mut frames = encode_update(&head(good_weight.clone(), vec![0.0]), 1, 64);
     frames[0][4..6].copy_from_slice(&(PROTOCOL_VERSION + 1).to_le_bytes());
     let payload_bytes = encode_payload(&head(good_weight.clone(), vec![0.0])).len() as u64;
-    c.send(&ClientMessage::UpdateHeader {
-        round: 1,
-        examples: 1,
-        train_loss: 0.0,
-        payload_bytes,
-    })
-    .await;
+    c.send(&ClientMessage::UpdateHeader { round: 1, examples: 1, train_loss: 0.0, payload_bytes }).await;
     c.send_binary(frames[0].clone()).await;
-    expect_error(
-        c.recv().await,
-        ErrorCode::ProtocolVersion,
-        "protocol version",
-    );
-    assert_eq!(
-        c.recv().await,
-        None,
-        "connection closed after a fatal error"
-    );
+    expect_error(c.recv().await, ErrorCode::ProtocolVersion, "protocol version");
+    assert_eq!(c.recv().await, None, "connection closed after a fatal error");
 
     // A valid update outside any round is refused as stale, not aggregated.
     let (mut c, _) = RawClient::join(&handle, "early").await;
-    expect_error(
-        upload(&mut c, &head(good_weight, vec![0.0])).await,
-        ErrorCode::StaleRound,
-        "not expected",
-    );
+    expect_error(upload(&mut c, &head(good_weight, vec![0.0])).await, ErrorCode::StaleRound, "not expected");
     drop(c);
 
-    let status = wait_status(&handle, |s| {
-        s.connected == 0 && s.rejections.values().sum::<u64>() == 12
-    })
-    .await;
+    let status = wait_status(&handle, |s| s.connected == 0 && s.rejections.values().sum::<u64>() == 12).await;
     let count = |code| status.rejections.get(&code).copied().unwrap_or(0);
     assert_eq!(count(ErrorCode::ProtocolVersion), 2);
     assert_eq!(count(ErrorCode::Oversized), 2);
@@ -320,9 +220,7 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     }
 
     // The server carries on: a normal round with three good clients.
-    let clients: Vec<_> = (0..3)
-        .map(|shard| spawn_client(&handle, shard, None))
-        .collect();
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
     assert_eq!(handle.finish().await.unwrap().completed_rounds, 1);
     for (task, _) in clients {
         task.await.unwrap().unwrap();

@@ -15,9 +15,7 @@ async fn three_clients_two_rounds() {
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let dir = run_dir.path().to_owned();
     let handle = start(cfg.clone(), run_dir.clone()).await;
-    let clients: Vec<_> = (0..3)
-        .map(|shard| spawn_client(&handle, shard, None))
-        .collect();
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
     let status = handle.finish().await.unwrap();
     assert_eq!(status.completed_rounds, 2);
     assert!(status.rejections.is_empty(), "{:?}", status.rejections);
@@ -33,32 +31,18 @@ async fn three_clients_two_rounds() {
         let updates: Vec<TrainOutput> = recorded
             .iter()
             .flat_map(|r| {
-                r.lock()
-                    .unwrap()
-                    .iter()
-                    .filter(|(r, _)| *r == round)
-                    .map(|(_, u)| u.clone())
-                    .collect::<Vec<_>>()
+                r.lock().unwrap().iter().filter(|(r, _)| *r == round).map(|(_, u)| u.clone()).collect::<Vec<_>>()
             })
             .collect();
         assert_eq!(updates.len(), 3);
-        assert_ne!(
-            updates[0].examples, updates[1].examples,
-            "unequal weights make the test meaningful"
-        );
-        assert_close(
-            &run_dir.load_model(round).unwrap(),
-            &weighted_mean(&updates),
-            1e-6,
-        );
+        assert_ne!(updates[0].examples, updates[1].examples, "unequal weights make the test meaningful");
+        assert_close(&run_dir.load_model(round).unwrap(), &weighted_mean(&updates), 1e-6);
     }
 
     // Only the trainable head crosses the wire: payload (names, shapes, f32 values) plus one header per frame.
     let spec = linreg::initial_model(0).spec();
-    let payload: usize = 4 + spec
-        .iter()
-        .map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>())
-        .sum::<usize>();
+    let payload: usize =
+        4 + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
     let frames = payload.div_ceil(cfg.max_frame_bytes - HEADER_LEN);
     assert!(frames > 1, "the test should exercise chunking");
     let expected_bytes = (payload + frames * HEADER_LEN) as u64;
@@ -66,13 +50,7 @@ async fn three_clients_two_rounds() {
     assert!(expected_bytes < spec.byte_size() as u64 + frozen_bytes);
 
     let lines = metrics(&dir);
-    assert_eq!(
-        lines
-            .iter()
-            .map(|l| l["round"].as_u64().unwrap())
-            .collect::<Vec<_>>(),
-        [0, 1, 2]
-    );
+    assert_eq!(lines.iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 1, 2]);
     assert!(lines[0]["clients"].as_array().unwrap().is_empty());
     for line in &lines[1..] {
         let clients = line["clients"].as_array().unwrap();
@@ -89,18 +67,8 @@ async fn three_clients_two_rounds() {
     }
     // Held-out loss of the global model falls.
     let loss = |i: usize| lines[i]["global"]["heldout_loss"].as_f64().unwrap();
-    assert!(
-        loss(2) < loss(1) && loss(1) < loss(0),
-        "{} {} {}",
-        loss(0),
-        loss(1),
-        loss(2)
-    );
-    assert!(
-        dir.join("global_model/round_0")
-            .join(TRAINABLE_FILE)
-            .exists()
-    );
+    assert!(loss(2) < loss(1) && loss(1) < loss(0), "{} {} {}", loss(0), loss(1), loss(2));
+    assert!(dir.join("global_model/round_0").join(TRAINABLE_FILE).exists());
     assert!(dir.join("config.toml").exists());
 }
 
@@ -110,9 +78,7 @@ async fn final_model(seed: u64) -> Vec<u8> {
     let cfg = config(&format!("seed={seed} fraction-fit=0.5 min-fit=2"));
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
-    let clients: Vec<_> = (0..3)
-        .map(|shard| spawn_client(&handle, shard, None))
-        .collect();
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
     assert_eq!(handle.finish().await.unwrap().completed_rounds, 2);
     for (task, _) in clients {
         task.await.unwrap().unwrap();

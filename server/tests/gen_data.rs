@@ -14,86 +14,46 @@ const SIZE: u32 = 64;
 fn expert_episodes_read_back_exactly() {
     let dir = tempfile::tempdir().expect("temp dir");
     let out = dir.path().join("so100");
-    let opts = GenDataOptions {
-        episodes: 2,
-        seed: 0,
-        image_size: SIZE,
-    };
+    let opts = GenDataOptions { episodes: 2, seed: 0, image_size: SIZE };
     let mut events = Vec::new();
     let summary = generate_dataset(&out, &opts, |e| events.push(e)).expect("generate");
 
     assert_eq!(summary.root, out);
     assert_eq!((summary.episodes, summary.seeds.len()), (2, 2));
-    let mut tried: Vec<u64> = summary
-        .seeds
-        .iter()
-        .chain(&summary.skipped_seeds)
-        .copied()
-        .collect();
+    let mut tried: Vec<u64> = summary.seeds.iter().chain(&summary.skipped_seeds).copied().collect();
     tried.sort_unstable();
-    assert_eq!(
-        tried,
-        (0..tried.len() as u64).collect::<Vec<_>>(),
-        "seeds are tried in order from --seed"
-    );
+    assert_eq!(tried, (0..tried.len() as u64).collect::<Vec<_>>(), "seeds are tried in order from --seed");
 
     let dataset = LeRobotDataset::open(&out).expect("open");
     assert_eq!(dataset.episodes().len(), 2);
     assert_eq!(dataset.len() as u64, summary.frames);
     assert_eq!(dataset.fps(), FPS);
     assert_eq!(dataset.tasks(), [TASK.to_string()]);
-    assert_eq!(
-        dataset.camera_keys(),
-        Camera::ALL.map(|c| format!("observation.images.{}", c.name()))
-    );
+    assert_eq!(dataset.camera_keys(), Camera::ALL.map(|c| format!("observation.images.{}", c.name())));
 
     for (episode, &seed) in dataset.episodes().iter().zip(&summary.seeds) {
         let expert = run_expert_episode(seed, MAX_EPISODE_FRAMES);
-        assert!(
-            expert.success,
-            "seed {seed} was recorded although the expert fails on it"
-        );
+        assert!(expert.success, "seed {seed} was recorded although the expert fails on it");
         assert_eq!(episode.length, expert.states.len(), "seed {seed}");
         assert_eq!(episode.tasks, [TASK.to_string()]);
         for (k, row) in (episode.dataset_from_index..episode.dataset_to_index).enumerate() {
-            assert_eq!(
-                dataset.vector("observation.state", row),
-                Some(&expert.states[k][..]),
-                "seed {seed} frame {k}"
-            );
-            assert_eq!(
-                dataset.vector("action", row),
-                Some(&expert.actions[k][..]),
-                "seed {seed} frame {k}"
-            );
+            assert_eq!(dataset.vector("observation.state", row), Some(&expert.states[k][..]), "seed {seed} frame {k}");
+            assert_eq!(dataset.vector("action", row), Some(&expert.actions[k][..]), "seed {seed} frame {k}");
         }
 
         // The first frame of each camera is the freshly placed scene; H.264 keeps it close.
         let scene = Scene::new(seed);
         for camera in Camera::ALL {
             let key = format!("observation.images.{}", camera.name());
-            let decoded = dataset
-                .camera_frames(&key, episode, &[episode.dataset_from_index])
-                .expect("decode")
-                .remove(0);
+            let decoded =
+                dataset.camera_frames(&key, episode, &[episode.dataset_from_index]).expect("decode").remove(0);
             assert_eq!((decoded.width, decoded.height), (SIZE, SIZE));
             let distinct: std::collections::BTreeSet<u8> = decoded.data.iter().copied().collect();
-            assert!(
-                distinct.len() > 32,
-                "{key} of seed {seed} looks blank: {} distinct values",
-                distinct.len()
-            );
-            let rendered = RgbImage::new(
-                SIZE,
-                SIZE,
-                render(&scene, camera, SIZE as usize, SIZE as usize),
-            )
-            .expect("rgb");
+            assert!(distinct.len() > 32, "{key} of seed {seed} looks blank: {} distinct values", distinct.len());
+            let rendered =
+                RgbImage::new(SIZE, SIZE, render(&scene, camera, SIZE as usize, SIZE as usize)).expect("rgb");
             let diff = decoded.mean_abs_diff(&rendered);
-            assert!(
-                diff < 4.0,
-                "{key} of seed {seed} differs from the render by {diff}/255 on average"
-            );
+            assert!(diff < 4.0, "{key} of seed {seed} differs from the render by {diff}/255 on average");
         }
     }
 
@@ -105,27 +65,16 @@ fn expert_episodes_read_back_exactly() {
             .iter()
             .map(|e| {
                 let rows: Vec<Vec<f64>> = (e.dataset_from_index..e.dataset_to_index)
-                    .map(|i| {
-                        dataset
-                            .vector(key, i)
-                            .expect("row")
-                            .iter()
-                            .map(|&v| f64::from(v))
-                            .collect()
-                    })
+                    .map(|i| dataset.vector(key, i).expect("row").iter().map(|&v| f64::from(v)).collect())
                     .collect();
                 FeatureStats::from_rows(&rows, JOINT_COUNT)
             })
             .collect();
-        let recomputed =
-            FeatureStats::aggregate(&per_episode.iter().collect::<Vec<_>>()).expect("two episodes");
+        let recomputed = FeatureStats::aggregate(&per_episode.iter().collect::<Vec<_>>()).expect("two episodes");
         assert_eq!(stats.get(key), Some(&recomputed), "{key}");
     }
 
-    let frame_events = events
-        .iter()
-        .filter(|e| matches!(e, GenProgress::Frame { .. }))
-        .count();
+    let frame_events = events.iter().filter(|e| matches!(e, GenProgress::Frame { .. })).count();
     assert_eq!(frame_events as u64, summary.frames);
     let written: Vec<u64> = events
         .iter()
@@ -148,55 +97,29 @@ fn expert_episodes_read_back_exactly() {
 #[test]
 fn same_options_write_the_same_files() {
     let dir = tempfile::tempdir().expect("temp dir");
-    let opts = GenDataOptions {
-        episodes: 1,
-        seed: 5,
-        image_size: SIZE,
-    };
+    let opts = GenDataOptions { episodes: 1, seed: 5, image_size: SIZE };
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     generate_dataset(&a, &opts, |_| {}).expect("first");
     generate_dataset(&b, &opts, |_| {}).expect("second");
     let (files_a, files_b) = (files(&a), files(&b));
-    assert!(
-        files_a
-            .keys()
-            .any(|p| p.extension().is_some_and(|e| e == "mp4"))
-    );
-    assert_eq!(
-        files_a.keys().collect::<Vec<_>>(),
-        files_b.keys().collect::<Vec<_>>()
-    );
+    assert!(files_a.keys().any(|p| p.extension().is_some_and(|e| e == "mp4")));
+    assert_eq!(files_a.keys().collect::<Vec<_>>(), files_b.keys().collect::<Vec<_>>());
     for (path, bytes) in &files_a {
-        assert!(
-            files_b[path] == *bytes,
-            "{} differs between runs",
-            path.display()
-        );
+        assert!(files_b[path] == *bytes, "{} differs between runs", path.display());
     }
 }
 
 #[test]
 fn odd_image_sizes_and_existing_datasets_are_refused() {
     let dir = tempfile::tempdir().expect("temp dir");
-    let odd = GenDataOptions {
-        episodes: 1,
-        seed: 0,
-        image_size: 63,
-    };
+    let odd = GenDataOptions { episodes: 1, seed: 0, image_size: 63 };
     let err = generate_dataset(dir.path(), &odd, |_| {}).expect_err("odd size");
     assert!(err.to_string().contains("even"), "{err}");
 
-    let opts = GenDataOptions {
-        episodes: 1,
-        seed: 0,
-        image_size: SIZE,
-    };
+    let opts = GenDataOptions { episodes: 1, seed: 0, image_size: SIZE };
     generate_dataset(dir.path(), &opts, |_| {}).expect("first dataset");
     let err = generate_dataset(dir.path(), &opts, |_| {}).expect_err("dataset exists");
-    assert!(
-        format!("{err:#}").contains("refusing to overwrite"),
-        "{err:#}"
-    );
+    assert!(format!("{err:#}").contains("refusing to overwrite"), "{err:#}");
 }
 
 /// Every file under `root`, by path relative to it.
@@ -210,10 +133,7 @@ fn files(root: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
                 dirs.push(path);
             } else {
                 let bytes = std::fs::read(&path).expect("read");
-                out.insert(
-                    path.strip_prefix(root).expect("under root").to_path_buf(),
-                    bytes,
-                );
+                out.insert(path.strip_prefix(root).expect("under root").to_path_buf(), bytes);
             }
         }
     }

@@ -9,12 +9,7 @@ fn fixture() -> Option<PathBuf> {
 }
 
 fn parity(dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_fedvla"))
-        .arg("parity")
-        .arg("--fixture")
-        .arg(dir)
-        .output()
-        .expect("fedvla runs")
+    Command::new(env!("CARGO_BIN_EXE_fedvla")).arg("parity").arg("--fixture").arg(dir).output().expect("fedvla runs")
 }
 
 /// Copies `from` into `to` by content, so the copies are writable even though the fixture is not.

@@ -15,57 +15,38 @@ async fn killed_after_round_one_then_resumed() {
 
     // First life: clients hang in round 2, so the kill lands while round 2 is in flight.
     let handle = start(cfg, run_dir).await;
-    let clients: Vec<_> = (0..3)
-        .map(|shard| spawn_client(&handle, shard, Some(2)))
-        .collect();
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, Some(2))).collect();
     wait_status(&handle, |s| s.completed_rounds == 1).await;
     handle.kill();
     for (task, _) in &clients {
         task.abort();
     }
     let round_one = std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap();
-    let rounds = |dir| {
-        metrics(dir)
-            .iter()
-            .map(|l| l["round"].as_u64().unwrap())
-            .collect::<Vec<_>>()
-    };
+    let rounds = |dir| metrics(dir).iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>();
     assert_eq!(rounds(&dir), [0, 1]);
 
     // Second life: resume from the run directory, as `fedvla serve --resume` does.
     let (run_dir, cfg) = RunDir::open(&dir).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     assert_eq!(handle.status().borrow().completed_rounds, 1);
-    let clients: Vec<_> = (0..3)
-        .map(|shard| spawn_client(&handle, shard, None))
-        .collect();
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
     let status = handle.finish().await.unwrap();
     assert_eq!(status.completed_rounds, 2);
     let mut updates: Vec<TrainOutput> = Vec::new();
     for (task, rec) in clients {
         let summary = task.await.unwrap().unwrap();
-        assert_eq!(
-            summary.rounds_trained, 1,
-            "resumed clients train round 2 only"
-        );
+        assert_eq!(summary.rounds_trained, 1, "resumed clients train round 2 only");
         updates.extend(rec.lock().unwrap().iter().map(|(round, u)| {
             assert_eq!(*round, 2);
             u.clone()
         }));
     }
     assert_eq!(rounds(&dir), [0, 1, 2]);
-    assert_eq!(
-        std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap(),
-        round_one
-    );
+    assert_eq!(std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap(), round_one);
     let crc = |round: usize| metrics(&dir)[round]["model_crc32"].as_u64().unwrap() as u32;
     assert_eq!(crc(1), run_dir.load_model(1).unwrap().checksum());
     assert_eq!(crc(2), run_dir.load_model(2).unwrap().checksum());
-    assert_close(
-        &run_dir.load_model(2).unwrap(),
-        &weighted_mean(&updates),
-        1e-6,
-    );
+    assert_close(&run_dir.load_model(2).unwrap(), &weighted_mean(&updates), 1e-6);
     // Round 2 started from round 1's model: only version 1 was served, and the clients fetched it.
     assert_eq!(metrics(&dir)[2]["model_version"].as_u64(), Some(2));
     let loss = |i: usize| metrics(&dir)[i]["global"]["heldout_loss"].as_f64().unwrap();

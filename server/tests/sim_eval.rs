@@ -10,16 +10,12 @@ use fedvla_data::video::VideoFile;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::{FeatureStats, NormStats, SmolVlaConfig, WordTokenizer};
 use fedvla_server::sim_eval::{
-    Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, RESULTS_FILE, SimEvalOptions, evaluate_in_sim,
-    video_path,
+    Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, RESULTS_FILE, SimEvalOptions, evaluate_in_sim, video_path,
 };
 use serde_json::Value;
 
 fn fedvla(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_fedvla"))
-        .args(args)
-        .output()
-        .expect("fedvla runs")
+    Command::new(env!("CARGO_BIN_EXE_fedvla")).args(args).output().expect("fedvla runs")
 }
 
 fn results(out: &Path) -> Value {
@@ -29,12 +25,7 @@ fn results(out: &Path) -> Value {
 #[test]
 fn expert_succeeds_on_at_least_90_percent_of_24_eval_seeds() {
     let out = tempfile::tempdir().unwrap();
-    let opts = SimEvalOptions {
-        episodes: 24,
-        seed: DEFAULT_SEED,
-        max_frames: DEFAULT_MAX_FRAMES,
-        video_size: None,
-    };
+    let opts = SimEvalOptions { episodes: 24, seed: DEFAULT_SEED, max_frames: DEFAULT_MAX_FRAMES, video_size: None };
     let mut reported = Vec::new();
     let summary = evaluate_in_sim(Agent::Expert, &opts, out.path(), |i, r| reported.push((i, r.seed))).unwrap();
 

@@ -8,7 +8,8 @@ use std::sync::{Arc, Mutex};
 use fedvla_data::LeRobotDataset;
 use fedvla_federation::codec::HEADER_LEN;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask, TrainOutput, run_client,
+    BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask,
+    TrainOutput, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_policy::PolicyDir;
@@ -97,11 +98,16 @@ type Updates = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
 
 /// Three native clients of `workload` on their own threads (trainer futures are not Send, the browser's are not
 /// either), recording their updates.
-fn spawn_clients(workload: &SmolVlaWorkload, addr: std::net::SocketAddr, hang_from_round: Option<u64>) -> Vec<(std::thread::JoinHandle<ClientSummary>, Updates)> {
+fn spawn_clients(
+    workload: &SmolVlaWorkload,
+    addr: std::net::SocketAddr,
+    hang_from_round: Option<u64>,
+) -> Vec<(std::thread::JoinHandle<ClientSummary>, Updates)> {
     (0..3)
         .map(|shard| {
             let updates = Updates::default();
-            let mut trainer = Recording { inner: workload.trainer(shard).unwrap(), updates: updates.clone(), hang_from_round };
+            let mut trainer =
+                Recording { inner: workload.trainer(shard).unwrap(), updates: updates.clone(), hang_from_round };
             let thread = std::thread::spawn(move || {
                 tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
                     let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
@@ -127,7 +133,8 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
 
     // Each round's global model is the example-weighted mean of that round's three updates.
     for round in 1..=2u64 {
-        let updates: Vec<&TrainOutput> = first.updates.iter().flatten().filter(|(r, _)| *r == round).map(|(_, u)| u).collect();
+        let updates: Vec<&TrainOutput> =
+            first.updates.iter().flatten().filter(|(r, _)| *r == round).map(|(_, u)| u).collect();
         assert_eq!(updates.len(), 3);
         let total: f64 = updates.iter().map(|u| u.examples as f64).sum();
         let global = NamedTensors::from_safetensors(
@@ -136,8 +143,11 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
         .unwrap();
         for (name, t) in global.iter() {
             for (i, v) in t.values.iter().enumerate() {
-                let mean: f64 =
-                    updates.iter().map(|u| u.update.get(name).unwrap().values[i] as f64 * u.examples as f64).sum::<f64>() / total;
+                let mean: f64 = updates
+                    .iter()
+                    .map(|u| u.update.get(name).unwrap().values[i] as f64 * u.examples as f64)
+                    .sum::<f64>()
+                    / total;
                 assert!((*v as f64 - mean).abs() <= 1e-6, "{name}[{i}]: {v} vs {mean}");
             }
         }
@@ -146,7 +156,8 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
     // Only the trainable tensors cross the wire: each upload is their payload plus frame headers,
     // far below the frozen part.
     let spec = first.initial.spec();
-    let payload: usize = 4 + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
+    let payload: usize =
+        4 + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
     let frames = payload.div_ceil(first.cfg.max_frame_bytes - HEADER_LEN);
     let lines = metrics(&first.dir);
     assert_eq!(lines.iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 1, 2]);
@@ -170,7 +181,8 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
     assert!(policy.stats.is_some() && policy.vlm_dir.is_some());
     // ... and is rolled out in the sim, filmed.
     let rollouts = first.dir.join("global_model/round_2/rollouts");
-    let results: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(rollouts.join("results.json")).unwrap()).unwrap();
+    let results: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(rollouts.join("results.json")).unwrap()).unwrap();
     assert_eq!(results["episodes"].as_array().unwrap().len(), 1);
     assert!(std::fs::metadata(rollouts.join("episode_0.mp4")).unwrap().len() > 1000);
 
@@ -251,7 +263,9 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
     let total: f64 = updates.iter().map(|u| u.examples as f64).sum();
     for (name, t) in global.iter() {
         for (i, v) in t.values.iter().enumerate() {
-            let mean: f64 = updates.iter().map(|u| u.update.get(name).unwrap().values[i] as f64 * u.examples as f64).sum::<f64>() / total;
+            let mean: f64 =
+                updates.iter().map(|u| u.update.get(name).unwrap().values[i] as f64 * u.examples as f64).sum::<f64>()
+                    / total;
             assert!((*v as f64 - mean).abs() <= 1e-6, "{name}[{i}]: {v} vs {mean}");
         }
     }

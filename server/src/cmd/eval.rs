@@ -9,8 +9,7 @@ use burn::tensor::Device;
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_policy::PolicyDir;
 use fedvla_server::sim_eval::{
-    Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, DEFAULT_VIDEO_SIZE, RESULTS_FILE, SimEvalOptions,
-    evaluate_in_sim,
+    Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, DEFAULT_VIDEO_SIZE, RESULTS_FILE, SimEvalOptions, evaluate_in_sim,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -56,9 +55,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
 
     let bar = ProgressBar::new(args.episodes as u64);
-    bar.set_style(ProgressStyle::with_template(
-        "[{bar:30}] {pos}/{len} episodes {msg} ({elapsed}, eta {eta})",
-    )?);
+    bar.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} episodes {msg} ({elapsed}, eta {eta})")?);
     let mut successes = 0;
     let started = Instant::now();
     let summary = evaluate_in_sim(agent, &opts, &args.out, |_, result| {
@@ -85,11 +82,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     println!("results in {}", args.out.join(RESULTS_FILE).display());
     if !summary.video_errors.is_empty() {
-        let lines: Vec<String> = summary
-            .video_errors
-            .iter()
-            .map(|e| format!("episode {}: {}", e.episode, e.message))
-            .collect();
+        let lines: Vec<String> =
+            summary.video_errors.iter().map(|e| format!("episode {}: {}", e.episode, e.message)).collect();
         anyhow::bail!(
             "{} of {} videos could not be written (results.json is complete):\n{}",
             lines.len(),
@@ -106,8 +100,8 @@ fn load_policy(dir: &std::path::Path) -> anyhow::Result<SimPolicy> {
     let stats = policy.stats.clone().with_context(|| {
         format!("{}: no normalisation statistics (policy_preprocessor/postprocessor files)", dir.display())
     })?;
-    let tokenizer = policy.tokenizer()?.with_context(|| {
-        format!("{}: no tokenizer.json in the policy's backbone folder", dir.display())
-    })?;
+    let tokenizer = policy
+        .tokenizer()?
+        .with_context(|| format!("{}: no tokenizer.json in the policy's backbone folder", dir.display()))?;
     Ok(SimPolicy::new(&policy.cfg, &policy.weights, stats, &tokenizer, &Device::flex())?)
 }

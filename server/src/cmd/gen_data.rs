@@ -23,24 +23,14 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let opts = GenDataOptions {
-        episodes: args.episodes,
-        seed: args.seed,
-        image_size: args.image_size,
-    };
+    let opts = GenDataOptions { episodes: args.episodes, seed: args.seed, image_size: args.image_size };
     let bar = ProgressBar::new(args.episodes as u64);
-    bar.set_style(ProgressStyle::with_template(
-        "[{bar:30}] {pos}/{len} episodes, {msg} ({elapsed}, eta {eta})",
-    )?);
+    bar.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} episodes, {msg} ({elapsed}, eta {eta})")?);
     let summary = generate_dataset(&args.out, &opts, |event| match event {
-        GenProgress::Frame { total_frames, .. } => {
-            bar.set_message(format!("{total_frames} frames"))
-        }
+        GenProgress::Frame { total_frames, .. } => bar.set_message(format!("{total_frames} frames")),
         GenProgress::EpisodeWritten { .. } => bar.inc(1),
         GenProgress::Skipped { seed, frames } => {
-            bar.println(format!(
-                "warning: the expert failed on seed {seed} ({frames} frames); skipped"
-            ));
+            bar.println(format!("warning: the expert failed on seed {seed} ({frames} frames); skipped"));
         }
     })?;
     bar.finish_and_clear();

@@ -52,7 +52,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     })
 }
 
-async fn train<L: LocalTrainer>(transport: &mut NativeTransport, trainer: &mut L, options: &ClientOptions) -> anyhow::Result<()> {
+async fn train<L: LocalTrainer>(
+    transport: &mut NativeTransport,
+    trainer: &mut L,
+    options: &ClientOptions,
+) -> anyhow::Result<()> {
     let result = run_client(transport, trainer, options, |event| match event {
         ClientEvent::Trained { round, examples, train_loss } => {
             tracing::info!(round, examples, train_loss, "trained");
@@ -70,6 +74,11 @@ async fn train<L: LocalTrainer>(transport: &mut NativeTransport, trainer: &mut L
         }
         other => other?,
     };
-    tracing::info!(rounds = summary.rounds_trained, bytes_up = summary.bytes_up, bytes_down = summary.bytes_down, "run finished");
+    tracing::info!(
+        rounds = summary.rounds_trained,
+        bytes_up = summary.bytes_up,
+        bytes_down = summary.bytes_down,
+        "run finished"
+    );
     Ok(())
 }

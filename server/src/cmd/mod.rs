@@ -17,9 +17,9 @@ use clap::Subcommand;
 use fedvla_federation::BoxError;
 use fedvla_server::config::{RunConfig, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
-use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::run_dir::RunDir;
 use fedvla_server::server::ServerParts;
+use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use tracing_subscriber::filter::{EnvFilter, LevelFilter};
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
@@ -95,30 +95,17 @@ fn boxed(e: BoxError) -> anyhow::Error {
 
 /// Logs to stderr at `stderr_level` (unless RUST_LOG says otherwise) and, at info, to `server.log`.
 fn init_tracing(log_file: Option<File>, stderr_level: LevelFilter) {
-    let stderr_filter = EnvFilter::builder()
-        .with_default_directive(stderr_level.into())
-        .from_env_lossy();
-    let file_layer = log_file.map(|f| {
-        fmt::layer()
-            .with_ansi(false)
-            .with_writer(Mutex::new(f))
-            .with_filter(LevelFilter::INFO)
-    });
+    let stderr_filter = EnvFilter::builder().with_default_directive(stderr_level.into()).from_env_lossy();
+    let file_layer =
+        log_file.map(|f| fmt::layer().with_ansi(false).with_writer(Mutex::new(f)).with_filter(LevelFilter::INFO));
     tracing_subscriber::registry()
-        .with(
-            fmt::layer()
-                .with_writer(std::io::stderr)
-                .with_filter(stderr_filter),
-        )
+        .with(fmt::layer().with_writer(std::io::stderr).with_filter(stderr_filter))
         .with(file_layer)
         .init();
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("starting the tokio runtime")
+    tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")
 }
 
 /// Resolves on ctrl-c or SIGTERM.

@@ -7,10 +7,10 @@ use anyhow::Context;
 use fedvla_federation::{ClientEvent, ClientOptions, LocalTrainer, run_client};
 use fedvla_server::config::{RunConfig, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
-use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::server::{self, ServerParts};
+use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use fedvla_server::workload::Workload;
 use indicatif::{MultiProgress, ProgressBar, ProgressStyle};
 use tokio::net::TcpListener;
@@ -43,9 +43,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     super::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
     println!("run directory: {}", run_dir.path().display());
     match config.workload {
-        WorkloadKind::Linreg => {
-            simulate(&LinRegWorkload::from_config(&config), config, args.clients, run_dir)
-        }
+        WorkloadKind::Linreg => simulate(&LinRegWorkload::from_config(&config), config, args.clients, run_dir),
         WorkloadKind::Smolvla => {
             let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(super::SHARDS_DIR))?;
             simulate(&workload, config, args.clients, run_dir)
@@ -53,30 +51,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
 }
 
-fn simulate<W: Workload>(
-    workload: &W,
-    config: RunConfig,
-    clients: usize,
-    run_dir: RunDir,
-) -> anyhow::Result<()> {
-    let trainers = (0..clients)
-        .map(|shard| workload.trainer(shard))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(super::boxed)?;
+fn simulate<W: Workload>(workload: &W, config: RunConfig, clients: usize, run_dir: RunDir) -> anyhow::Result<()> {
+    let trainers =
+        (0..clients).map(|shard| workload.trainer(shard)).collect::<Result<Vec<_>, _>>().map_err(super::boxed)?;
     let metrics_path = run_dir.path().join(METRICS_FILE);
     let rounds = config.num_server_rounds;
     let parts = ServerParts::of(workload, config, run_dir).map_err(super::boxed)?;
     super::runtime()?.block_on(async move {
-        let listener = TcpListener::bind("127.0.0.1:0")
-            .await
-            .context("binding 127.0.0.1:0")?;
+        let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
         let handle = server::start(parts, listener)?;
         let url = format!("ws://{}", handle.addr());
         let bars = MultiProgress::new();
         let round_bar = bars.add(ProgressBar::new(rounds));
-        round_bar.set_style(ProgressStyle::with_template(
-            "{prefix:>10} [{bar:30}] {pos}/{len} rounds {msg}",
-        )?);
+        round_bar.set_style(ProgressStyle::with_template("{prefix:>10} [{bar:30}] {pos}/{len} rounds {msg}")?);
         round_bar.set_prefix("server");
         let mut status = handle.status();
         let watcher = tokio::spawn({
@@ -86,8 +73,7 @@ fn simulate<W: Workload>(
                     let s = status.borrow_and_update().clone();
                     round_bar.set_position(s.completed_rounds);
                     let refusals = s.rejections.values().sum::<u64>();
-                    round_bar
-                        .set_message(format!("{} connected, {refusals} refusals", s.connected));
+                    round_bar.set_message(format!("{} connected, {refusals} refusals", s.connected));
                     if s.finished || status.changed().await.is_err() {
                         break;
                     }
@@ -153,42 +139,30 @@ fn spawn_client<L: LocalTrainer + Send + 'static>(
     std::thread::spawn(move || {
         let client = async move {
             let mut transport = NativeTransport::connect(&url).await.map_err(super::boxed)?;
-            let options = ClientOptions {
-                name: format!("client-{shard}"),
-                auth_token: None,
-            };
-            let summary = run_client(
-                &mut transport,
-                &mut trainer,
-                &options,
-                |event| match event {
-                    ClientEvent::Joined { client_id } => {
-                        bar.set_message(format!("joined as {client_id}"))
+            let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+            let summary = run_client(&mut transport, &mut trainer, &options, |event| match event {
+                ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
+                ClientEvent::Task { round, local_steps } => {
+                    bar.set_message(format!("round {round}: training {local_steps} steps"));
+                }
+                ClientEvent::Trained { round, train_loss, .. } => {
+                    bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
+                }
+                ClientEvent::Uploaded { round, bytes, .. } => {
+                    bar.set_message(format!("round {round}: sent {bytes} B"));
+                }
+                ClientEvent::RolledOut { round, episodes, successes } => {
+                    bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
+                }
+                ClientEvent::RoundClosed { round, accepted } => {
+                    if accepted {
+                        bar.set_position(round);
                     }
-                    ClientEvent::Task { round, local_steps } => {
-                        bar.set_message(format!("round {round}: training {local_steps} steps"));
-                    }
-                    ClientEvent::Trained {
-                        round, train_loss, ..
-                    } => {
-                        bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
-                    }
-                    ClientEvent::Uploaded { round, bytes, .. } => {
-                        bar.set_message(format!("round {round}: sent {bytes} B"));
-                    }
-                    ClientEvent::RolledOut { round, episodes, successes } => {
-                        bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
-                    }
-                    ClientEvent::RoundClosed { round, accepted } => {
-                        if accepted {
-                            bar.set_position(round);
-                        }
-                    }
-                    ClientEvent::Refused { code, .. } => {
-                        bar.set_message(format!("refused: {}", code.as_str()));
-                    }
-                },
-            )
+                }
+                ClientEvent::Refused { code, .. } => {
+                    bar.set_message(format!("refused: {}", code.as_str()));
+                }
+            })
             .await?;
             bar.finish_with_message(format!(
                 "{} rounds, {} B up, {} B down",

@@ -8,9 +8,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use fedvla_federation::{
-    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput,
-    FedAvg, LocalTrainer, NamedTensors, PROTOCOL_VERSION, RoundTask, ServerMessage, TrainOutput,
-    run_client,
+    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, FedAvg, LocalTrainer,
+    NamedTensors, PROTOCOL_VERSION, RoundTask, ServerMessage, TrainOutput, run_client,
 };
 use fedvla_server::config::{Partitioning, RunConfig};
 use fedvla_server::coordinator::RunStatus;
@@ -118,10 +117,7 @@ impl LocalTrainer for TestTrainer {
             std::future::pending::<()>().await;
         }
         let out = self.inner.train(task).await?;
-        self.recorded
-            .lock()
-            .unwrap()
-            .push((task.round, out.clone()));
+        self.recorded.lock().unwrap().push((task.round, out.clone()));
         Ok(out)
     }
 
@@ -149,21 +145,14 @@ pub fn spawn_trainer(
     let url = format!("ws://{}", handle.addr());
     tokio::spawn(async move {
         let mut transport = NativeTransport::connect(&url).await.expect("connect");
-        let options = ClientOptions {
-            name: format!("client-{shard}"),
-            auth_token: None,
-        };
+        let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await
     })
 }
 
 /// The metrics lines of a run.
 pub fn metrics(dir: &Path) -> Vec<serde_json::Value> {
-    std::fs::read_to_string(dir.join(METRICS_FILE))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
+    std::fs::read_to_string(dir.join(METRICS_FILE)).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
 }
 
 /// The example-weighted mean, computed here independently of the strategy.
@@ -173,10 +162,8 @@ pub fn weighted_mean(updates: &[TrainOutput]) -> NamedTensors {
     for (name, t) in updates[0].update.iter() {
         let values = (0..t.values.len())
             .map(|i| {
-                let sum: f64 = updates
-                    .iter()
-                    .map(|u| u.examples as f64 * f64::from(u.update.get(name).unwrap().values[i]))
-                    .sum();
+                let sum: f64 =
+                    updates.iter().map(|u| u.examples as f64 * f64::from(u.update.get(name).unwrap().values[i])).sum();
                 (sum / total) as f32
             })
             .collect();
@@ -201,9 +188,7 @@ pub struct RawClient {
 
 impl RawClient {
     pub async fn connect(handle: &ServerHandle) -> Self {
-        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", handle.addr()))
-            .await
-            .unwrap();
+        let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", handle.addr())).await.unwrap();
         Self { ws }
     }
 
@@ -232,9 +217,7 @@ impl RawClient {
     /// Next server message, `None` once closed.
     pub async fn recv(&mut self) -> Option<ServerMessage> {
         loop {
-            let frame = tokio::time::timeout(Duration::from_secs(10), self.ws.next())
-                .await
-                .expect("reply within 10 s");
+            let frame = tokio::time::timeout(Duration::from_secs(10), self.ws.next()).await.expect("reply within 10 s");
             match frame {
                 Some(Ok(Message::Text(t))) => {
                     return Some(serde_json::from_str(t.as_str()).unwrap());
@@ -251,9 +234,6 @@ pub fn join_message(name: &str, protocol_version: u16) -> ClientMessage {
         protocol_version,
         auth_token: None,
         name: name.into(),
-        capabilities: Capabilities {
-            backend: "test".into(),
-            memory_bytes: 0,
-        },
+        capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
     }
 }

@@ -99,7 +99,9 @@ impl Browser {
     async fn command(&self, method: &str, path: &str, body: Value) -> Value {
         let request = hyper::Request::builder().method(method).uri(path).header("content-type", "application/json");
         let body = if body.is_null() { Bytes::new() } else { Bytes::from(body.to_string()) };
-        let reply = http_request(&self.authority, request, body).await.unwrap_or_else(|e| panic!("WebDriver {method} {path}: {e}"));
+        let reply = http_request(&self.authority, request, body)
+            .await
+            .unwrap_or_else(|e| panic!("WebDriver {method} {path}: {e}"));
         let reply: Value = serde_json::from_slice(&reply).expect("WebDriver JSON");
         reply["value"].clone()
     }
@@ -123,13 +125,21 @@ impl Browser {
 
     pub async fn click(&self, css: &str) {
         let element = self.session_command("POST", "/element", json!({ "using": "css selector", "value": css })).await;
-        let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str).unwrap_or_else(|| panic!("no element {css}: {element}"));
+        let id = element
+            .as_object()
+            .and_then(|o| o.values().next())
+            .and_then(Value::as_str)
+            .unwrap_or_else(|| panic!("no element {css}: {element}"));
         self.session_command("POST", &format!("/element/{id}/click"), json!({})).await;
     }
 
     pub async fn type_into(&self, css: &str, text: &str) {
         let element = self.session_command("POST", "/element", json!({ "using": "css selector", "value": css })).await;
-        let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str).unwrap_or_else(|| panic!("no element {css}: {element}"));
+        let id = element
+            .as_object()
+            .and_then(|o| o.values().next())
+            .and_then(Value::as_str)
+            .unwrap_or_else(|| panic!("no element {css}: {element}"));
         self.session_command("POST", &format!("/element/{id}/value"), json!({ "text": text })).await;
     }
 
@@ -143,7 +153,11 @@ impl Browser {
             }
             if started.elapsed() > timeout {
                 let page = self.eval("return document.body ? document.body.innerText : ''").await;
-                panic!("timed out after {timeout:?} waiting for {what}; page text:\n{}\npage errors: {:?}", page.as_str().unwrap_or(""), self.page_errors().await);
+                panic!(
+                    "timed out after {timeout:?} waiting for {what}; page text:\n{}\npage errors: {:?}",
+                    page.as_str().unwrap_or(""),
+                    self.page_errors().await
+                );
             }
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -153,7 +167,9 @@ impl Browser {
     pub async fn screenshot(&self, path: &Path) {
         use base64::Engine;
         let encoded = self.session_command("GET", "/screenshot", Value::Null).await;
-        let png = base64::engine::general_purpose::STANDARD.decode(encoded.as_str().expect("base64 screenshot")).expect("base64");
+        let png = base64::engine::general_purpose::STANDARD
+            .decode(encoded.as_str().expect("base64 screenshot"))
+            .expect("base64");
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
         std::fs::write(path, &png).unwrap();
         let image = image::load_from_memory(&png).expect("a PNG").to_luma8();
@@ -172,7 +188,10 @@ impl Browser {
         };
         if let Value::Array(entries) = self.session_command("POST", "/se/log", json!({ "type": "browser" })).await {
             errors.extend(
-                entries.iter().filter(|e| e["level"] == "SEVERE").map(|e| format!("console: {}", e["message"].as_str().unwrap_or_default())),
+                entries
+                    .iter()
+                    .filter(|e| e["level"] == "SEVERE")
+                    .map(|e| format!("console: {}", e["message"].as_str().unwrap_or_default())),
             );
         }
         errors

@@ -10,7 +10,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let all_args: Vec<String> = std::env::args().skip(1).collect();
     let small_files = all_args.iter().any(|a| a == "--small-files");
     let args: Vec<&String> = all_args.iter().filter(|a| !a.starts_with("--")).collect();
-    let out = args.first().ok_or("usage: write_synthetic OUT_DIR [episodes] [frames] [height] [width] [--small-files]")?;
+    let out =
+        args.first().ok_or("usage: write_synthetic OUT_DIR [episodes] [frames] [height] [width] [--small-files]")?;
     let arg = |i: usize, default: usize| args.get(i).map_or(Ok(default), |s| s.parse::<usize>());
     let (episodes, frames, height) = (arg(1, 3)?, arg(2, 20)?, arg(3, 64)? as u32);
     let width = arg(4, height as usize)? as u32;

@@ -13,7 +13,11 @@ pub struct RgbImage {
 impl RgbImage {
     pub fn new(width: u32, height: u32, data: Vec<u8>) -> Result<Self> {
         if data.len() != width as usize * height as usize * 3 {
-            return Err(DataError::InvalidInput(format!("{width}x{height} RGB image needs {} bytes, got {}", width * height * 3, data.len())));
+            return Err(DataError::InvalidInput(format!(
+                "{width}x{height} RGB image needs {} bytes, got {}",
+                width * height * 3,
+                data.len()
+            )));
         }
         Ok(Self { width, height, data })
     }

@@ -190,8 +190,8 @@ impl DatasetInfo {
     pub fn load(root: &Path) -> Result<(Self, CodebaseVersion)> {
         let path = root.join("meta/info.json");
         let text = std::fs::read_to_string(&path).map_err(|e| DataError::io(&path, e))?;
-        let raw: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| DataError::InvalidJson { path: path.clone(), reason: e.to_string() })?;
+        let raw: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| DataError::InvalidJson { path: path.clone(), reason: e.to_string() })?;
         let found = raw.get("codebase_version").and_then(|v| v.as_str()).unwrap_or("<missing>").to_string();
         let version = match found.as_str() {
             CODEBASE_VERSION_V30 => CodebaseVersion::V30,
@@ -243,6 +243,7 @@ pub(crate) fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
     }
-    let text = serde_json::to_string_pretty(value).map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: e.to_string() })?;
+    let text = serde_json::to_string_pretty(value)
+        .map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: e.to_string() })?;
     std::fs::write(path, text).map_err(|e| DataError::io(path, e))
 }

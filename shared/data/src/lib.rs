@@ -33,7 +33,10 @@ pub use partition::{ClientSplit, EpisodeTask, Partition, PartitionConfig, Partit
 pub use reader::{DeltaTimestamps, EpisodeMeta, EpisodeVideo, LeRobotDataset, Sample};
 #[cfg(feature = "io")]
 pub use shard::build_shard;
-pub use shard::{ClientShard, ShardEpisode, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, verify_shard_bytes, verify_shard_file};
+pub use shard::{
+    ClientShard, ShardEpisode, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, verify_shard_bytes,
+    verify_shard_file,
+};
 pub use stats::{DatasetStats, FeatureStats};
 #[cfg(feature = "io")]
 pub use video::VideoEncoding;

@@ -98,7 +98,10 @@ pub fn partition(episodes: &[EpisodeTask], config: &PartitionConfig) -> Result<P
     if n == 0 {
         return Err(DataError::InvalidInput("a partition needs at least one client".into()));
     }
-    for (name, f) in [("client_held_out_fraction", config.client_held_out_fraction), ("server_held_out_fraction", config.server_held_out_fraction)] {
+    for (name, f) in [
+        ("client_held_out_fraction", config.client_held_out_fraction),
+        ("server_held_out_fraction", config.server_held_out_fraction),
+    ] {
         if !(0.0..=1.0).contains(&f) {
             return Err(DataError::InvalidInput(format!("{name} must lie in [0, 1], got {f}")));
         }
@@ -120,7 +123,8 @@ pub fn partition(episodes: &[EpisodeTask], config: &PartitionConfig) -> Result<P
     let server_count = held_out_count(sorted.len(), config.server_held_out_fraction);
     let mut server_held_out: Vec<usize> = shuffled[..server_count].iter().map(|e| e.episode_index).collect();
     server_held_out.sort_unstable();
-    let remaining: Vec<EpisodeTask> = sorted.into_iter().filter(|e| server_held_out.binary_search(&e.episode_index).is_err()).collect();
+    let remaining: Vec<EpisodeTask> =
+        sorted.into_iter().filter(|e| server_held_out.binary_search(&e.episode_index).is_err()).collect();
 
     let assigned = match config.strategy {
         PartitionStrategy::EpisodeModulo => {
@@ -144,10 +148,12 @@ pub fn partition(episodes: &[EpisodeTask], config: &PartitionConfig) -> Result<P
             out
         }
         PartitionStrategy::Dirichlet { alpha } => {
-            let gamma = Gamma::new(alpha, 1.0).map_err(|e| DataError::InvalidInput(format!("Dirichlet alpha {alpha}: {e}")))?;
+            let gamma =
+                Gamma::new(alpha, 1.0).map_err(|e| DataError::InvalidInput(format!("Dirichlet alpha {alpha}: {e}")))?;
             let mut out = vec![Vec::new(); n];
             for task in distinct_tasks(&remaining) {
-                let mut members: Vec<usize> = remaining.iter().filter(|e| e.task_index == task).map(|e| e.episode_index).collect();
+                let mut members: Vec<usize> =
+                    remaining.iter().filter(|e| e.task_index == task).map(|e| e.episode_index).collect();
                 members.shuffle(&mut rng);
                 let mut weights: Vec<f64> = (0..n).map(|_| gamma.sample(&mut rng)).collect();
                 let total: f64 = weights.iter().sum();
@@ -158,7 +164,9 @@ pub fn partition(episodes: &[EpisodeTask], config: &PartitionConfig) -> Result<P
                     let pick = task % n;
                     weights = (0..n).map(|c| if c == pick { 1.0 } else { 0.0 }).collect();
                 }
-                for (c, part) in split_by_counts(&members, &proportional_counts(members.len(), &weights)).into_iter().enumerate() {
+                for (c, part) in
+                    split_by_counts(&members, &proportional_counts(members.len(), &weights)).into_iter().enumerate()
+                {
                     out[c].extend(part);
                 }
             }
@@ -236,8 +244,14 @@ mod tests {
         (1usize..120, 1usize..6, 1usize..9, strategy(), 0.0f64..0.5, 0.0f64..0.3, any::<u64>()).prop_map(
             |(episodes, tasks, num_clients, strategy, client_held_out_fraction, server_held_out_fraction, seed)| {
                 // Sparse, shuffled episode indices: a dataset subset need not be 0..n.
-                let list = (0..episodes).map(|i| EpisodeTask { episode_index: 3 * i + 1, task_index: (i * 7) % tasks }).rev().collect();
-                (list, PartitionConfig { num_clients, strategy, client_held_out_fraction, server_held_out_fraction, seed })
+                let list = (0..episodes)
+                    .map(|i| EpisodeTask { episode_index: 3 * i + 1, task_index: (i * 7) % tasks })
+                    .rev()
+                    .collect();
+                (
+                    list,
+                    PartitionConfig { num_clients, strategy, client_held_out_fraction, server_held_out_fraction, seed },
+                )
             },
         )
     }
@@ -330,7 +344,10 @@ mod tests {
         };
         assert!(partition(&episodes, &PartitionConfig { num_clients: 0, ..base }).is_err());
         assert!(partition(&episodes, &PartitionConfig { client_held_out_fraction: 1.5, ..base }).is_err());
-        assert!(partition(&episodes, &PartitionConfig { strategy: PartitionStrategy::Dirichlet { alpha: 0.0 }, ..base }).is_err());
+        assert!(
+            partition(&episodes, &PartitionConfig { strategy: PartitionStrategy::Dirichlet { alpha: 0.0 }, ..base })
+                .is_err()
+        );
         let twice = [episodes[0], episodes[0]];
         assert!(partition(&twice, &base).is_err());
     }

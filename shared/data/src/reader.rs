@@ -107,8 +107,10 @@ impl LeRobotDataset {
             .filter(|(k, f)| matches!(f.dtype.as_str(), "float32" | "float64") && !BOOKKEEPING.contains(&k.as_str()))
             .map(|(k, f)| (k.clone(), f.width()))
             .collect();
-        let mut vectors: BTreeMap<String, (usize, Vec<f32>)> = vector_keys.iter().map(|(k, d)| (k.clone(), (*d, Vec::new()))).collect();
-        let (mut timestamp, mut frame_index, mut episode_index, mut task_index) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut vectors: BTreeMap<String, (usize, Vec<f32>)> =
+            vector_keys.iter().map(|(k, d)| (k.clone(), (*d, Vec::new()))).collect();
+        let (mut timestamp, mut frame_index, mut episode_index, mut task_index) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for path in &data_files {
             let table = Table::read(path)?;
             for (key, dim) in &vector_keys {
@@ -130,7 +132,20 @@ impl LeRobotDataset {
                 total
             )));
         }
-        Ok(Self { root, info, version, tasks, episodes, stats, vectors, timestamp, frame_index, episode_index, task_index, videos: VideoCache::default() })
+        Ok(Self {
+            root,
+            info,
+            version,
+            tasks,
+            episodes,
+            stats,
+            vectors,
+            timestamp,
+            frame_index,
+            episode_index,
+            task_index,
+            videos: VideoCache::default(),
+        })
     }
 
     pub fn root(&self) -> &Path {
@@ -189,15 +204,17 @@ impl LeRobotDataset {
     pub fn episode_of(&self, index: usize) -> Result<&EpisodeMeta> {
         let len = self.len();
         let pos = self.episodes.partition_point(|e| e.dataset_to_index <= index);
-        self.episodes.get(pos).filter(|e| e.dataset_from_index <= index).ok_or(DataError::IndexOutOfRange { index, len })
+        self.episodes
+            .get(pos)
+            .filter(|e| e.dataset_from_index <= index)
+            .ok_or(DataError::IndexOutOfRange { index, len })
     }
 
     /// Decodes the frames of `camera` at global indices `indices` (all from one episode).
     pub fn camera_frames(&self, camera: &str, episode: &EpisodeMeta, indices: &[usize]) -> Result<Vec<RgbImage>> {
-        let video = episode
-            .videos
-            .get(camera)
-            .ok_or_else(|| DataError::InvalidInput(format!("episode {} has no video for {camera:?}", episode.episode_index)))?;
+        let video = episode.videos.get(camera).ok_or_else(|| {
+            DataError::InvalidInput(format!("episode {} has no video for {camera:?}", episode.episode_index))
+        })?;
         let file = self.videos.get(&video.path)?;
         let times: Vec<f64> = indices.iter().map(|&i| video.from_timestamp + f64::from(self.timestamp[i])).collect();
         file.frames_at(&times, VIDEO_TOLERANCE_S)
@@ -207,7 +224,9 @@ impl LeRobotDataset {
     pub fn get(&self, index: usize, delta: &DeltaTimestamps) -> Result<Sample> {
         let cameras = self.camera_keys();
         if let Some(unknown) = delta.keys().find(|k| !self.vectors.contains_key(*k) && !cameras.contains(k)) {
-            return Err(DataError::InvalidInput(format!("delta_timestamps names {unknown:?}, which is not a vector or camera feature")));
+            return Err(DataError::InvalidInput(format!(
+                "delta_timestamps names {unknown:?}, which is not a vector or camera feature"
+            )));
         }
         let episode = self.episode_of(index)?;
         let fps = f64::from(self.info.fps);
@@ -317,8 +336,21 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
                 videos: videos
                     .iter()
                     .map(|v| {
-                        let path = info::v30_path(root, &video_template, v.chunk[row] as u64, v.file[row] as u64, Some(&v.key));
-                        (v.key.clone(), EpisodeVideo { path, from_timestamp: v.from_timestamp[row], to_timestamp: v.to_timestamp[row] })
+                        let path = info::v30_path(
+                            root,
+                            &video_template,
+                            v.chunk[row] as u64,
+                            v.file[row] as u64,
+                            Some(&v.key),
+                        );
+                        (
+                            v.key.clone(),
+                            EpisodeVideo {
+                                path,
+                                from_timestamp: v.from_timestamp[row],
+                                to_timestamp: v.to_timestamp[row],
+                            },
+                        )
                     })
                     .collect(),
                 stats: stats.iter().filter_map(|(key, rows)| Some((key.clone(), rows[row].clone()?))).collect(),
@@ -327,7 +359,8 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
     }
     episodes.sort_by_key(|e| e.dataset_from_index);
     data_files.sort();
-    let data_paths = data_files.into_iter().map(|(c, f)| info::v30_path(root, &info.data_path, c as u64, f as u64, None)).collect();
+    let data_paths =
+        data_files.into_iter().map(|(c, f)| info::v30_path(root, &info.data_path, c as u64, f as u64, None)).collect();
     Ok((tasks, episodes, data_paths))
 }
 
@@ -384,7 +417,8 @@ fn load_v21_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
     let mut data_paths = Vec::with_capacity(lines.len());
     let mut from = 0;
     for line in lines {
-        let ints = [("episode_chunk", line.episode_index as u64 / chunks_size), ("episode_index", line.episode_index as u64)];
+        let ints =
+            [("episode_chunk", line.episode_index as u64 / chunks_size), ("episode_index", line.episode_index as u64)];
         data_paths.push(root.join(info::fill_template(&info.data_path, &ints, None)));
         let videos = video_keys
             .iter()
@@ -414,7 +448,12 @@ fn read_jsonl<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
     text.lines()
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
-        .map(|(i, l)| serde_json::from_str(l).map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: format!("line {}: {e}", i + 1) }))
+        .map(|(i, l)| {
+            serde_json::from_str(l).map_err(|e| DataError::InvalidJson {
+                path: path.to_path_buf(),
+                reason: format!("line {}: {e}", i + 1),
+            })
+        })
         .collect()
 }
 

@@ -69,7 +69,8 @@ impl FeatureStats {
             let n: u64 = h.iter().sum();
             let value = |bin: usize| bin as f64 / 255.0;
             let mean = h.iter().enumerate().map(|(b, &k)| k as f64 * value(b)).sum::<f64>() / n.max(1) as f64;
-            let var = h.iter().enumerate().map(|(b, &k)| k as f64 * (value(b) - mean).powi(2)).sum::<f64>() / n.max(1) as f64;
+            let var =
+                h.iter().enumerate().map(|(b, &k)| k as f64 * (value(b) - mean).powi(2)).sum::<f64>() / n.max(1) as f64;
             out.min[c] = h.iter().position(|&k| k > 0).map_or(0.0, value);
             out.max[c] = h.iter().rposition(|&k| k > 0).map_or(0.0, value);
             out.mean[c] = mean;
@@ -218,16 +219,19 @@ pub fn save_stats(path: &Path, stats: &DatasetStats) -> Result<()> {
 
 pub fn load_stats(path: &Path) -> Result<DatasetStats> {
     let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
-    let value: Value = serde_json::from_str(&text).map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: e.to_string() })?;
-    let object = value
-        .as_object()
-        .ok_or_else(|| DataError::InvalidJson { path: path.to_path_buf(), reason: "top level is not an object".into() })?;
+    let value: Value = serde_json::from_str(&text)
+        .map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: e.to_string() })?;
+    let object = value.as_object().ok_or_else(|| DataError::InvalidJson {
+        path: path.to_path_buf(),
+        reason: "top level is not an object".into(),
+    })?;
     object
         .iter()
         .map(|(k, v)| {
-            FeatureStats::from_json(v)
-                .map(|s| (k.clone(), s))
-                .ok_or_else(|| DataError::InvalidJson { path: path.to_path_buf(), reason: format!("stats for {k:?} lack min/max/mean/std") })
+            FeatureStats::from_json(v).map(|s| (k.clone(), s)).ok_or_else(|| DataError::InvalidJson {
+                path: path.to_path_buf(),
+                reason: format!("stats for {k:?} lack min/max/mean/std"),
+            })
         })
         .collect()
 }
@@ -251,7 +255,8 @@ mod tests {
         let a: Vec<Vec<f64>> = (0..7).map(|i| vec![i as f64, (i * i) as f64]).collect();
         let b: Vec<Vec<f64>> = (0..5).map(|i| vec![-(i as f64), 3.5 * i as f64]).collect();
         let all: Vec<Vec<f64>> = a.iter().chain(&b).cloned().collect();
-        let (sa, sb, sall) = (FeatureStats::from_rows(&a, 2), FeatureStats::from_rows(&b, 2), FeatureStats::from_rows(&all, 2));
+        let (sa, sb, sall) =
+            (FeatureStats::from_rows(&a, 2), FeatureStats::from_rows(&b, 2), FeatureStats::from_rows(&all, 2));
         let agg = FeatureStats::aggregate(&[&sa, &sb]).expect("two parts");
         for d in 0..2 {
             assert!((agg.mean[d] - sall.mean[d]).abs() < 1e-12);

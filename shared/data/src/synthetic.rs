@@ -16,8 +16,10 @@ pub fn episode(episode: usize, frames: usize, cameras: &[CameraSpec], task: &str
                     10.0 * (j - 2.5) + 20.0 * (2.0 * std::f32::consts::PI * 0.7 * t + j + 0.3 * e).sin()
                 })
                 .collect();
-            let action: Vec<f32> = state.iter().enumerate().map(|(j, s)| s + 2.0 * (t * 3.0 + j as f32).cos()).collect();
-            let images = cameras.iter().enumerate().map(|(c, cam)| image(cam.width, cam.height, episode, f, c)).collect();
+            let action: Vec<f32> =
+                state.iter().enumerate().map(|(j, s)| s + 2.0 * (t * 3.0 + j as f32).cos()).collect();
+            let images =
+                cameras.iter().enumerate().map(|(c, cam)| image(cam.width, cam.height, episode, f, c)).collect();
             Frame { state, action, images }
         })
         .collect();

@@ -8,7 +8,9 @@ use std::sync::Arc;
 
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, Int32Type, Int64Type};
-use arrow_array::{Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, ListArray, RecordBatch, StringArray};
+use arrow_array::{
+    Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, ListArray, RecordBatch, StringArray,
+};
 use arrow_schema::{DataType, Field, Schema};
 use parquet::arrow::ArrowWriter;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
@@ -45,7 +47,12 @@ fn arrow_buffer_offsets(groups: usize, len: usize) -> arrow_buffer::OffsetBuffer
 /// One single-element list<int64> per row (how LeRobot stores per-episode `count`).
 pub fn count_list(counts: &[i64]) -> ArrayRef {
     let field = Arc::new(Field::new(LIST_ITEM, DataType::Int64, true));
-    Arc::new(ListArray::new(field, arrow_buffer_offsets(counts.len(), 1), Arc::new(Int64Array::from(counts.to_vec())), None))
+    Arc::new(ListArray::new(
+        field,
+        arrow_buffer_offsets(counts.len(), 1),
+        Arc::new(Int64Array::from(counts.to_vec())),
+        None,
+    ))
 }
 
 pub fn string_lists(rows: &[Vec<String>]) -> ArrayRef {
@@ -61,8 +68,11 @@ pub fn write_parquet(path: &Path, columns: Vec<(&str, ArrayRef)>, metadata: Vec<
         std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
     }
     let fields: Vec<Field> = columns.iter().map(|(n, a)| Field::new(*n, a.data_type().clone(), true)).collect();
-    let schema = Arc::new(Schema::new(fields).with_metadata(metadata.into_iter().map(|(k, v)| (k.to_string(), v)).collect::<std::collections::HashMap<_, _>>()));
-    let batch = RecordBatch::try_new(schema.clone(), columns.into_iter().map(|(_, a)| a).collect()).map_err(|e| DataError::parquet(path, e))?;
+    let schema = Arc::new(Schema::new(fields).with_metadata(
+        metadata.into_iter().map(|(k, v)| (k.to_string(), v)).collect::<std::collections::HashMap<_, _>>(),
+    ));
+    let batch = RecordBatch::try_new(schema.clone(), columns.into_iter().map(|(_, a)| a).collect())
+        .map_err(|e| DataError::parquet(path, e))?;
     let file = File::create(path).map_err(|e| DataError::io(path, e))?;
     let props = WriterProperties::builder().set_compression(Compression::SNAPPY).build();
     let mut writer = ArrowWriter::try_new(file, schema, Some(props)).map_err(|e| DataError::parquet(path, e))?;
@@ -101,9 +111,13 @@ impl Table {
     pub fn flat_f64_rows(&self, name: &str) -> Result<Vec<Vec<f64>>> {
         let mut out = Vec::with_capacity(self.num_rows());
         for col in self.columns(name)? {
-            let list = col.as_list_opt::<i32>().ok_or_else(|| self.bad_type(name, col.data_type(), "a list of numbers"))?;
+            let list =
+                col.as_list_opt::<i32>().ok_or_else(|| self.bad_type(name, col.data_type(), "a list of numbers"))?;
             for i in 0..list.len() {
-                out.push(flat_numbers(&list.value(i)).ok_or_else(|| self.bad_type(name, col.data_type(), "a list of numbers"))?);
+                out.push(
+                    flat_numbers(&list.value(i))
+                        .ok_or_else(|| self.bad_type(name, col.data_type(), "a list of numbers"))?,
+                );
             }
         }
         Ok(out)
@@ -156,10 +170,13 @@ impl Table {
     pub fn string_list_column(&self, name: &str) -> Result<Vec<Vec<String>>> {
         let mut out = Vec::with_capacity(self.num_rows());
         for col in self.columns(name)? {
-            let list = col.as_list_opt::<i32>().ok_or_else(|| self.bad_type(name, col.data_type(), "a list of strings"))?;
+            let list =
+                col.as_list_opt::<i32>().ok_or_else(|| self.bad_type(name, col.data_type(), "a list of strings"))?;
             for i in 0..list.len() {
                 let values = list.value(i);
-                let strings = values.as_string_opt::<i32>().ok_or_else(|| self.bad_type(name, col.data_type(), "a list of strings"))?;
+                let strings = values
+                    .as_string_opt::<i32>()
+                    .ok_or_else(|| self.bad_type(name, col.data_type(), "a list of strings"))?;
                 out.push(strings.iter().map(|v| v.unwrap_or_default().to_string()).collect());
             }
         }
@@ -178,9 +195,17 @@ impl Table {
                 return Err(self.bad_type(name, col.data_type(), "a list of floats"));
             };
             if let Some(bad) = lengths.iter().find(|&&l| l != dim) {
-                return Err(DataError::column(&self.path, name, format!("rows have {bad} values, the feature has {dim}")));
+                return Err(DataError::column(
+                    &self.path,
+                    name,
+                    format!("rows have {bad} values, the feature has {dim}"),
+                ));
             }
-            let start = if let Some(l) = col.as_fixed_size_list_opt() { l.offset() * dim } else { col.as_list::<i32>().offsets()[0] as usize };
+            let start = if let Some(l) = col.as_fixed_size_list_opt() {
+                l.offset() * dim
+            } else {
+                col.as_list::<i32>().offsets()[0] as usize
+            };
             let count = lengths.len() * dim;
             if let Some(v) = values.as_primitive_opt::<Float32Type>() {
                 out.extend_from_slice(&v.values()[start..start + count]);

@@ -8,19 +8,25 @@ use serde_json::json;
 
 use crate::error::{DataError, Result};
 use crate::info::{
-    self, CHUNKS_SIZE, CODEBASE_VERSION_V30, DATA_FILES_SIZE_IN_MB, DATA_PATH_V30, DatasetInfo, EPISODES_PATH_V30, Feature,
-    Features, VIDEO_FILES_SIZE_IN_MB, VIDEO_PATH_V30,
+    self, CHUNKS_SIZE, CODEBASE_VERSION_V30, DATA_FILES_SIZE_IN_MB, DATA_PATH_V30, DatasetInfo, EPISODES_PATH_V30,
+    Feature, Features, VIDEO_FILES_SIZE_IN_MB, VIDEO_PATH_V30,
 };
 use crate::stats::{DatasetStats, FeatureStats, QUANTILES};
 use crate::table;
 use crate::video::{CameraVideoWriter, RgbImage, VideoEncoding};
 
 /// SO-100 joint order (LeRobot's `so100_follower` names).
-pub const SO100_JOINTS: [&str; 6] = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper"];
+pub const SO100_JOINTS: [&str; 6] =
+    ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper"];
 
 /// The per-frame bookkeeping columns every LeRobot dataset has, with their dtypes.
-const INDEX_FEATURES: [(&str, &str); 5] =
-    [("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"), ("index", "int64"), ("task_index", "int64")];
+const INDEX_FEATURES: [(&str, &str); 5] = [
+    ("timestamp", "float32"),
+    ("frame_index", "int64"),
+    ("episode_index", "int64"),
+    ("index", "int64"),
+    ("task_index", "int64"),
+];
 
 /// A camera: `name` becomes the feature `observation.images.<name>`.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -112,7 +118,11 @@ struct FilePosition {
 
 impl FilePosition {
     fn next(self) -> Self {
-        if self.file + 1 >= CHUNKS_SIZE { FilePosition { chunk: self.chunk + 1, file: 0 } } else { FilePosition { chunk: self.chunk, file: self.file + 1 } }
+        if self.file + 1 >= CHUNKS_SIZE {
+            FilePosition { chunk: self.chunk + 1, file: 0 }
+        } else {
+            FilePosition { chunk: self.chunk, file: self.file + 1 }
+        }
     }
 }
 
@@ -179,23 +189,35 @@ impl DatasetWriter {
         let root = root.as_ref().to_path_buf();
         let info_path = root.join("meta/info.json");
         if info_path.exists() {
-            return Err(DataError::InvalidInput(format!("{} already exists; refusing to overwrite a dataset", info_path.display())));
+            return Err(DataError::InvalidInput(format!(
+                "{} already exists; refusing to overwrite a dataset",
+                info_path.display()
+            )));
         }
         if spec.fps == 0 || spec.joint_names.is_empty() {
             return Err(DataError::InvalidInput("fps and joint_names must be non-zero/non-empty".into()));
         }
         // LeRobot refuses datasets whose rollover sizes are not positive.
         if spec.data_files_size_in_mb == 0 || spec.video_files_size_in_mb == 0 {
-            return Err(DataError::InvalidInput("data_files_size_in_mb and video_files_size_in_mb must be positive".into()));
+            return Err(DataError::InvalidInput(
+                "data_files_size_in_mb and video_files_size_in_mb must be positive".into(),
+            ));
         }
         for cam in &spec.cameras {
             if !cam.width.is_multiple_of(2) || !cam.height.is_multiple_of(2) || cam.width == 0 || cam.height == 0 {
-                return Err(DataError::InvalidInput(format!("camera {} is {}x{}; yuv420p needs even sizes", cam.name, cam.width, cam.height)));
+                return Err(DataError::InvalidInput(format!(
+                    "camera {} is {}x{}; yuv420p needs even sizes",
+                    cam.name, cam.width, cam.height
+                )));
             }
         }
         std::fs::create_dir_all(&root).map_err(|e| DataError::io(&root, e))?;
         let features = build_features(&spec);
-        let cameras = spec.cameras.iter().map(|c| CameraStream { spec: c.clone(), position: FilePosition::default(), writer: None }).collect();
+        let cameras = spec
+            .cameras
+            .iter()
+            .map(|c| CameraStream { spec: c.clone(), position: FilePosition::default(), writer: None })
+            .collect();
         Ok(Self {
             root,
             spec,
@@ -236,8 +258,20 @@ impl DatasetWriter {
         let mut video_starts = Vec::with_capacity(self.cameras.len());
         for cam in &mut self.cameras {
             if cam.writer.is_none() {
-                let path = info::v30_path(&self.root, VIDEO_PATH_V30, cam.position.chunk, cam.position.file, Some(&cam.spec.key()));
-                cam.writer = Some(CameraVideoWriter::create(&path, cam.spec.width, cam.spec.height, self.spec.fps, self.spec.video)?);
+                let path = info::v30_path(
+                    &self.root,
+                    VIDEO_PATH_V30,
+                    cam.position.chunk,
+                    cam.position.file,
+                    Some(&cam.spec.key()),
+                );
+                cam.writer = Some(CameraVideoWriter::create(
+                    &path,
+                    cam.spec.width,
+                    cam.spec.height,
+                    self.spec.fps,
+                    self.spec.video,
+                )?);
             }
             let frames_before = cam.writer.as_ref().map_or(0, CameraVideoWriter::frame_count);
             video_starts.push((cam.position, frames_before));
@@ -275,7 +309,9 @@ impl DatasetWriter {
                     .collect();
                 handles
                     .into_iter()
-                    .map(|h| h.join().unwrap_or_else(|_| Err(DataError::Encode("a camera encoder thread panicked".into()))))
+                    .map(|h| {
+                        h.join().unwrap_or_else(|_| Err(DataError::Encode("a camera encoder thread panicked".into())))
+                    })
                     .collect()
             });
             camera_results.into_iter().collect::<Result<Vec<()>>>()?;
@@ -322,10 +358,17 @@ impl DatasetWriter {
                 )));
             }
             if frame.images.len() != self.cameras.len() {
-                return Err(DataError::InvalidInput(format!("frame {i}: {} images for {} cameras", frame.images.len(), self.cameras.len())));
+                return Err(DataError::InvalidInput(format!(
+                    "frame {i}: {} images for {} cameras",
+                    frame.images.len(),
+                    self.cameras.len()
+                )));
             }
             for (image, cam) in frame.images.iter().zip(&self.cameras) {
-                if image.width != cam.spec.width || image.height != cam.spec.height || image.data.len() != (image.width * image.height * 3) as usize {
+                if image.width != cam.spec.width
+                    || image.height != cam.spec.height
+                    || image.data.len() != (image.width * image.height * 3) as usize
+                {
                     return Err(DataError::InvalidInput(format!(
                         "frame {i}: camera {} image is {}x{} ({} bytes), expected {}x{} RGB",
                         cam.spec.name,
@@ -342,7 +385,14 @@ impl DatasetWriter {
     }
 
     /// Stats of every feature over this episode, in `features` order.
-    fn episode_stats(&self, episode: &Episode, episode_index: usize, task_index: usize, from: u64, histograms: &[[[u64; 256]; 3]]) -> Vec<FeatureStats> {
+    fn episode_stats(
+        &self,
+        episode: &Episode,
+        episode_index: usize,
+        task_index: usize,
+        from: u64,
+        histograms: &[[[u64; 256]; 3]],
+    ) -> Vec<FeatureStats> {
         let dim = self.spec.joint_names.len();
         let n = episode.frames.len();
         let fps = f64::from(self.spec.fps);
@@ -381,7 +431,10 @@ impl DatasetWriter {
             self.data_position = self.data_position.next();
         }
         for cam in &mut self.cameras {
-            let full = cam.writer.as_ref().is_some_and(|w| w.bytes_written() >= self.spec.video_files_size_in_mb * 1024 * 1024);
+            let full = cam
+                .writer
+                .as_ref()
+                .is_some_and(|w| w.bytes_written() >= self.spec.video_files_size_in_mb * 1024 * 1024);
             if full && let Some(writer) = cam.writer.take() {
                 writer.finish()?;
                 cam.position = cam.position.next();
@@ -516,13 +569,18 @@ impl DatasetWriter {
             let shape = eps[0].stats[fi].shape.clone();
             let stat_rows = |name: &str| -> Vec<&[f64]> {
                 eps.iter()
-                    .map(|e| e.stats[fi].named_values().into_iter().find(|(n, _)| *n == name).map_or(&[][..], |(_, v)| v))
+                    .map(|e| {
+                        e.stats[fi].named_values().into_iter().find(|(n, _)| *n == name).map_or(&[][..], |(_, v)| v)
+                    })
                     .collect()
             };
             for name in ["min", "max", "mean", "std"] {
                 push(format!("stats/{key}/{name}"), table::nested_f64_list(&stat_rows(name), &shape));
             }
-            push(format!("stats/{key}/count"), table::count_list(&eps.iter().map(|e| e.stats[fi].count as i64).collect::<Vec<_>>()));
+            push(
+                format!("stats/{key}/count"),
+                table::count_list(&eps.iter().map(|e| e.stats[fi].count as i64).collect::<Vec<_>>()),
+            );
             for (name, _) in QUANTILES {
                 push(format!("stats/{key}/{name}"), table::nested_f64_list(&stat_rows(name), &shape));
             }

@@ -73,7 +73,8 @@ fn av1_frames_decode_within_codec_tolerance_by_timestamp() {
     for (&i, image) in order.iter().zip(&decoded) {
         assert_eq!((image.width, image.height), (W, H));
         let original = &originals[i as usize];
-        let mean_abs = image.data.iter().zip(&original.data).map(|(a, b)| f64::from(a.abs_diff(*b))).sum::<f64>() / image.data.len() as f64;
+        let mean_abs = image.data.iter().zip(&original.data).map(|(a, b)| f64::from(a.abs_diff(*b))).sum::<f64>()
+            / image.data.len() as f64;
         // 4:2:0 chroma subsampling blurs the square's edges; anything beyond a few levels is a decoding error.
         assert!(mean_abs < 6.0, "frame {i}: mean absolute difference {mean_abs:.2} of 255");
         eprintln!("frame {i}: mean absolute difference {mean_abs:.2}/255");

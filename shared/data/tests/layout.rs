@@ -121,7 +121,8 @@ fn layout_matches_lerobot_v30() {
     let root = common::write_dataset(&dir, "ds", &common::episodes(2, 20, 32), 32);
 
     // meta/info.json
-    let info: Value = serde_json::from_str(&std::fs::read_to_string(root.join("meta/info.json")).expect("info.json")).expect("json");
+    let info: Value =
+        serde_json::from_str(&std::fs::read_to_string(root.join("meta/info.json")).expect("info.json")).expect("json");
     let keys: Vec<&str> = info.as_object().expect("object").keys().map(String::as_str).collect();
     let mut expected_keys = INFO_KEYS.to_vec();
     expected_keys.sort();
@@ -129,18 +130,31 @@ fn layout_matches_lerobot_v30() {
     assert_eq!(info["codebase_version"], "v3.0");
     assert_eq!(info["fps"], 30);
     assert_eq!(info["robot_type"], "so100");
-    assert_eq!((info["total_episodes"].clone(), info["total_frames"].clone(), info["total_tasks"].clone()), (2.into(), 40.into(), 2.into()));
-    assert_eq!((info["chunks_size"].clone(), info["data_files_size_in_mb"].clone(), info["video_files_size_in_mb"].clone()), (1000.into(), 100.into(), 200.into()));
+    assert_eq!(
+        (info["total_episodes"].clone(), info["total_frames"].clone(), info["total_tasks"].clone()),
+        (2.into(), 40.into(), 2.into())
+    );
+    assert_eq!(
+        (info["chunks_size"].clone(), info["data_files_size_in_mb"].clone(), info["video_files_size_in_mb"].clone()),
+        (1000.into(), 100.into(), 200.into())
+    );
     assert_eq!(info["data_path"], "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet");
     assert_eq!(info["video_path"], "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4");
     assert_eq!(info["splits"], serde_json::json!({"train": "0:2"}));
 
-    let joints = ["shoulder_pan.pos", "shoulder_lift.pos", "elbow_flex.pos", "wrist_flex.pos", "wrist_roll.pos", "gripper.pos"];
+    let joints =
+        ["shoulder_pan.pos", "shoulder_lift.pos", "elbow_flex.pos", "wrist_flex.pos", "wrist_roll.pos", "gripper.pos"];
     let features = &info["features"];
     for key in ["action", "observation.state"] {
         assert_eq!(features[key], serde_json::json!({"dtype": "float32", "shape": [6], "names": joints}), "{key}");
     }
-    for (key, dtype) in [("timestamp", "float32"), ("frame_index", "int64"), ("episode_index", "int64"), ("index", "int64"), ("task_index", "int64")] {
+    for (key, dtype) in [
+        ("timestamp", "float32"),
+        ("frame_index", "int64"),
+        ("episode_index", "int64"),
+        ("index", "int64"),
+        ("task_index", "int64"),
+    ] {
         assert_eq!(features[key], serde_json::json!({"dtype": dtype, "shape": [1], "names": null}), "{key}");
     }
     for key in ["observation.images.top", "observation.images.wrist"] {
@@ -148,7 +162,8 @@ fn layout_matches_lerobot_v30() {
         assert_eq!(cam["dtype"], "video");
         assert_eq!(cam["shape"], serde_json::json!([32, 32, 3]));
         assert_eq!(cam["names"], serde_json::json!(["height", "width", "channels"]));
-        let mut video_keys: Vec<&str> = cam["info"].as_object().expect("video info").keys().map(String::as_str).collect();
+        let mut video_keys: Vec<&str> =
+            cam["info"].as_object().expect("video info").keys().map(String::as_str).collect();
         let mut expected = VIDEO_INFO_KEYS.to_vec();
         video_keys.sort();
         expected.sort();
@@ -163,17 +178,47 @@ fn layout_matches_lerobot_v30() {
     }
     let order: Vec<String> = {
         let text = std::fs::read_to_string(root.join("meta/info.json")).expect("info.json");
-        let feature_names = ["action", "observation.state", "observation.images.top", "observation.images.wrist", "timestamp", "frame_index", "episode_index", "index", "task_index"];
-        let mut found: Vec<(usize, String)> = feature_names.iter().map(|n| (text.find(&format!("\"{n}\": {{")).expect("feature present"), n.to_string())).collect();
+        let feature_names = [
+            "action",
+            "observation.state",
+            "observation.images.top",
+            "observation.images.wrist",
+            "timestamp",
+            "frame_index",
+            "episode_index",
+            "index",
+            "task_index",
+        ];
+        let mut found: Vec<(usize, String)> = feature_names
+            .iter()
+            .map(|n| (text.find(&format!("\"{n}\": {{")).expect("feature present"), n.to_string()))
+            .collect();
         found.sort();
         found.into_iter().map(|(_, n)| n).collect()
     };
-    assert_eq!(order, ["action", "observation.state", "observation.images.top", "observation.images.wrist", "timestamp", "frame_index", "episode_index", "index", "task_index"], "feature order");
+    assert_eq!(
+        order,
+        [
+            "action",
+            "observation.state",
+            "observation.images.top",
+            "observation.images.wrist",
+            "timestamp",
+            "frame_index",
+            "episode_index",
+            "index",
+            "task_index"
+        ],
+        "feature order"
+    );
 
     // meta/stats.json: every feature, each with the ten statistics; images per channel as [3][1][1].
-    let stats: Value = serde_json::from_str(&std::fs::read_to_string(root.join("meta/stats.json")).expect("stats.json")).expect("json");
+    let stats: Value =
+        serde_json::from_str(&std::fs::read_to_string(root.join("meta/stats.json")).expect("stats.json"))
+            .expect("json");
     for (feature, _) in STATS_FEATURES {
-        let mut names: Vec<&str> = stats[feature].as_object().expect("feature stats").keys().map(String::as_str).collect();
+        let mut names: Vec<&str> =
+            stats[feature].as_object().expect("feature stats").keys().map(String::as_str).collect();
         let mut expected = STATS_NAMES.to_vec();
         names.sort();
         expected.sort();
@@ -186,8 +231,12 @@ fn layout_matches_lerobot_v30() {
     // Parquet schemas.
     let data = schema(&root.join("data/chunk-000/file-000.parquet"));
     assert_eq!(columns(&data), owned(&DATA_COLUMNS), "data columns");
-    let hf: Value = serde_json::from_str(data.metadata().get("huggingface").expect("huggingface metadata")).expect("json");
-    assert_eq!(hf["info"]["features"]["action"], serde_json::json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": 6, "_type": "List"}));
+    let hf: Value =
+        serde_json::from_str(data.metadata().get("huggingface").expect("huggingface metadata")).expect("json");
+    assert_eq!(
+        hf["info"]["features"]["action"],
+        serde_json::json!({"feature": {"dtype": "float32", "_type": "Value"}, "length": 6, "_type": "List"})
+    );
 
     let tasks = schema(&root.join("meta/tasks.parquet"));
     assert_eq!(columns(&tasks), owned(&TASKS_COLUMNS), "tasks columns");

@@ -22,7 +22,13 @@ fn list_f32(rows: Vec<&[f32]>) -> ArrayRef {
     Arc::new(ListArray::new(Arc::new(Field::new("item", DataType::Float32, true)), offsets, Arc::new(values), None))
 }
 
-fn write_episode_parquet(path: &std::path::Path, episode: &Episode, episode_index: i64, first_index: i64, task_index: i64) {
+fn write_episode_parquet(
+    path: &std::path::Path,
+    episode: &Episode,
+    episode_index: i64,
+    first_index: i64,
+    task_index: i64,
+) {
     let n = episode.frames.len();
     let columns: Vec<(&str, ArrayRef)> = vec![
         ("observation.state", list_f32(episode.frames.iter().map(|f| f.state.as_slice()).collect())),
@@ -33,7 +39,9 @@ fn write_episode_parquet(path: &std::path::Path, episode: &Episode, episode_inde
         ("index", Arc::new(Int64Array::from((first_index..first_index + n as i64).collect::<Vec<_>>()))),
         ("task_index", Arc::new(Int64Array::from(vec![task_index; n]))),
     ];
-    let schema = Arc::new(Schema::new(columns.iter().map(|(name, a)| Field::new(*name, a.data_type().clone(), true)).collect::<Vec<_>>()));
+    let schema = Arc::new(Schema::new(
+        columns.iter().map(|(name, a)| Field::new(*name, a.data_type().clone(), true)).collect::<Vec<_>>(),
+    ));
     let batch = RecordBatch::try_new(schema.clone(), columns.into_iter().map(|(_, a)| a).collect()).expect("batch");
     std::fs::create_dir_all(path.parent().expect("parent")).expect("mkdir");
     let mut writer = ArrowWriter::try_new(std::fs::File::create(path).expect("create"), schema, None).expect("writer");
@@ -46,7 +54,10 @@ fn reads_v21_layout() {
     let dir = common::temp_dir("v21");
     let root = dir.join("ds");
     let episodes = common::episodes(2, 15, SIZE);
-    let names: Vec<String> = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper"].iter().map(|j| format!("{j}.pos")).collect();
+    let names: Vec<String> = ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper"]
+        .iter()
+        .map(|j| format!("{j}.pos"))
+        .collect();
     let camera = json!({"dtype": "video", "shape": [SIZE, SIZE, 3], "names": ["height", "width", "channels"],
                "info": {"video.fps": 30.0, "video.height": SIZE, "video.width": SIZE, "video.channels": 3, "video.codec": "h264",
                         "video.pix_fmt": "yuv420p", "video.is_depth_map": false, "has_audio": false}});
@@ -68,12 +79,23 @@ fn reads_v21_layout() {
     });
     std::fs::create_dir_all(root.join("meta")).expect("mkdir");
     std::fs::write(root.join("meta/info.json"), serde_json::to_string_pretty(&info).expect("json")).expect("info");
-    let tasks: String = common::TASKS.iter().enumerate().map(|(i, t)| format!("{}\n", json!({"task_index": i, "task": t}))).collect();
+    let tasks: String =
+        common::TASKS.iter().enumerate().map(|(i, t)| format!("{}\n", json!({"task_index": i, "task": t}))).collect();
     std::fs::write(root.join("meta/tasks.jsonl"), tasks).expect("tasks");
-    let lines: String = episodes.iter().enumerate().map(|(i, e)| format!("{}\n", json!({"episode_index": i, "tasks": [e.task], "length": e.frames.len()}))).collect();
+    let lines: String = episodes
+        .iter()
+        .enumerate()
+        .map(|(i, e)| format!("{}\n", json!({"episode_index": i, "tasks": [e.task], "length": e.frames.len()})))
+        .collect();
     std::fs::write(root.join("meta/episodes.jsonl"), lines).expect("episodes");
     for (e, episode) in episodes.iter().enumerate() {
-        write_episode_parquet(&root.join(format!("data/chunk-000/episode_{e:06}.parquet")), episode, e as i64, (e * 15) as i64, (e % 2) as i64);
+        write_episode_parquet(
+            &root.join(format!("data/chunk-000/episode_{e:06}.parquet")),
+            episode,
+            e as i64,
+            (e * 15) as i64,
+            (e % 2) as i64,
+        );
         for (c, key) in ["observation.images.top", "observation.images.wrist"].iter().enumerate() {
             let path = root.join(format!("videos/chunk-000/{key}/episode_{e:06}.mp4"));
             let mut video = CameraVideoWriter::create(&path, SIZE, SIZE, 30, VideoEncoding::default()).expect("video");

@@ -26,7 +26,10 @@ fn written_dataset_reads_back() {
     let mut worst_mean_abs_error = 0f64;
     for (e, episode) in episodes.iter().enumerate() {
         let meta = &ds.episodes()[e];
-        assert_eq!((meta.dataset_from_index, meta.length, meta.tasks.clone()), (e * 20, 20, vec![episode.task.clone()]));
+        assert_eq!(
+            (meta.dataset_from_index, meta.length, meta.tasks.clone()),
+            (e * 20, 20, vec![episode.task.clone()])
+        );
         for (f, frame) in episode.frames.iter().enumerate() {
             let sample = ds.get(e * 20 + f, &no_deltas).expect("get");
             assert_eq!((sample.episode_index, sample.frame_index, sample.task.as_str()), (e, f, episode.task.as_str()));
@@ -63,7 +66,8 @@ fn written_dataset_reads_back() {
     // Each episode's own stats (the episodes parquet's stats/<feature>/<stat> columns) equal its recomputed ones.
     for (e, episode) in episodes.iter().enumerate() {
         let own = &ds.episodes()[e].stats;
-        let rows: Vec<Vec<f64>> = episode.frames.iter().map(|f| f.state.iter().map(|&v| f64::from(v)).collect()).collect();
+        let rows: Vec<Vec<f64>> =
+            episode.frames.iter().map(|f| f.state.iter().map(|&v| f64::from(v)).collect()).collect();
         let expected = FeatureStats::from_rows(&rows, 6);
         let stored = &own["observation.state"];
         assert_eq!((stored.count, stored.shape.clone()), (20, vec![6]), "episode {e}");
@@ -127,6 +131,9 @@ fn progress_reports_every_frame() {
     writer.finish().expect("finish");
     let seen = seen.lock().expect("lock");
     assert_eq!(seen.len(), 10);
-    assert_eq!(seen.last().map(|p| (p.episode_index, p.episode_frames_done, p.episode_length, p.total_frames_written)), Some((1, 5, 5, 10)));
+    assert_eq!(
+        seen.last().map(|p| (p.episode_index, p.episode_frames_done, p.episode_length, p.total_frames_written)),
+        Some((1, 5, 5, 10))
+    );
     std::fs::remove_dir_all(&dir).expect("cleanup");
 }

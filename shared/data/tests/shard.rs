@@ -3,8 +3,8 @@
 mod common;
 
 use fedvla_data::{
-    ClientShard, DataError, LeRobotDataset, PartitionConfig, PartitionStrategy, ShardSpec, build_shard, episode_tasks, partition,
-    verify_shard_file,
+    ClientShard, DataError, LeRobotDataset, PartitionConfig, PartitionStrategy, ShardSpec, build_shard, episode_tasks,
+    partition, verify_shard_file,
 };
 
 fn word_tokenizer(text: &str) -> Vec<u32> {
@@ -32,7 +32,8 @@ fn shard_round_trip_and_checksums() {
     assert_eq!(sidecar.file_bytes, std::fs::metadata(&out).expect("stat").len());
     verify_shard_file(&out, &sidecar).expect("fresh file verifies");
     let written: fedvla_data::ShardFileManifest =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("shards/client-000.manifest.json")).expect("sidecar")).expect("json");
+        serde_json::from_str(&std::fs::read_to_string(dir.join("shards/client-000.manifest.json")).expect("sidecar"))
+            .expect("json");
     assert_eq!(written, sidecar);
 
     let shard = ClientShard::read(&out).expect("read");

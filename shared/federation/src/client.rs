@@ -8,8 +8,8 @@ use std::future::Future;
 use crate::codec::{encode_frames, encode_payload};
 use crate::error::{BoxError, TensorError};
 use crate::protocol::{
-    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest,
-    RoundMetrics, RoundTask, ServerMessage,
+    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
+    ServerMessage,
 };
 use crate::tensors::NamedTensors;
 
@@ -61,10 +61,7 @@ pub trait LocalTrainer {
 
     /// Rolls the tensors last set out in the sim. Clients that cannot (no sim or no way to film it) report no
     /// episodes, and the server records that.
-    fn rollout(
-        &mut self,
-        request: &RolloutRequest,
-    ) -> impl Future<Output = Result<Vec<RolloutOutput>, BoxError>> {
+    fn rollout(&mut self, request: &RolloutRequest) -> impl Future<Output = Result<Vec<RolloutOutput>, BoxError>> {
         let _ = request;
         async { Ok(Vec::new()) }
     }
@@ -86,12 +83,7 @@ pub trait ClientTransport {
 
     /// Uploads a rollout video of `round` (`POST /rollout/{round}/{file_name}`, authorised by the session
     /// token from the welcome).
-    fn upload_video(
-        &mut self,
-        round: u64,
-        session: &str,
-        video: Video,
-    ) -> impl Future<Output = Result<(), BoxError>>;
+    fn upload_video(&mut self, round: u64, session: &str, video: Video) -> impl Future<Output = Result<(), BoxError>>;
 
     /// Seconds on a monotonic clock (`performance.now()` in browsers).
     fn now_seconds(&self) -> f64;
@@ -176,11 +168,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     options: &ClientOptions,
     mut on_event: impl FnMut(ClientEvent),
 ) -> Result<ClientSummary, ClientError> {
-    let mut link = Link {
-        transport,
-        bytes_up: 0,
-        bytes_down: 0,
-    };
+    let mut link = Link { transport, bytes_up: 0, bytes_down: 0 };
     link.send(&ClientMessage::Join {
         protocol_version: PROTOCOL_VERSION,
         auth_token: options.auth_token.clone(),
@@ -189,34 +177,23 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     })
     .await?;
     let (client_id, max_frame_bytes, session) = match link.recv().await? {
-        ServerMessage::Welcome {
-            client_id,
-            max_frame_bytes,
-            session,
-            ..
-        } => (client_id, max_frame_bytes as usize, session),
+        ServerMessage::Welcome { client_id, max_frame_bytes, session, .. } => {
+            (client_id, max_frame_bytes as usize, session)
+        }
         ServerMessage::Error { code, message } => {
             return Err(ClientError::Refused { code, message });
         }
         other => {
-            return Err(ClientError::Protocol(format!(
-                "expected welcome, got {other:?}"
-            )));
+            return Err(ClientError::Protocol(format!("expected welcome, got {other:?}")));
         }
     };
     on_event(ClientEvent::Joined { client_id });
-    let mut summary = ClientSummary {
-        client_id,
-        ..ClientSummary::default()
-    };
+    let mut summary = ClientSummary { client_id, ..ClientSummary::default() };
     let mut global: Option<(u64, NamedTensors)> = None;
     loop {
         match link.recv().await? {
             ServerMessage::RoundTask(task) => {
-                on_event(ClientEvent::Task {
-                    round: task.round,
-                    local_steps: task.local_steps,
-                });
+                on_event(ClientEvent::Task { round: task.round, local_steps: task.local_steps });
                 let start = link.transport.now_seconds();
                 let bytes_before = link.bytes_up;
                 let tensors = match global.take() {
@@ -276,10 +253,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 .await?;
                 for frame in encode_frames(&payload, task.round, max_frame_bytes) {
                     link.bytes_up += frame.len() as u64;
-                    link.transport
-                        .send_binary(frame)
-                        .await
-                        .map_err(ClientError::Transport)?;
+                    link.transport.send_binary(frame).await.map_err(ClientError::Transport)?;
                 }
                 on_event(ClientEvent::Uploaded {
                     round: task.round,
@@ -299,19 +273,14 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 link.send(&ClientMessage::Metrics(metrics)).await?;
                 summary.rounds_trained += 1;
             }
-            ServerMessage::RoundClosed {
-                round, accepted, ..
-            } => {
+            ServerMessage::RoundClosed { round, accepted, .. } => {
                 on_event(ClientEvent::RoundClosed { round, accepted });
             }
             ServerMessage::Error { code, message } if code.is_fatal() => {
                 return Err(ClientError::Refused { code, message });
             }
             ServerMessage::Error { code, message } => {
-                on_event(ClientEvent::Refused {
-                    code,
-                    message: message.clone(),
-                });
+                on_event(ClientEvent::Refused { code, message: message.clone() });
                 summary.refusals.push((code, message));
             }
             ServerMessage::Finished { .. } => {
@@ -337,36 +306,21 @@ impl<T: ClientTransport> Link<'_, T> {
     async fn send(&mut self, msg: &ClientMessage) -> Result<(), ClientError> {
         let text = serde_json::to_string(msg).expect("client messages serialize");
         self.bytes_up += text.len() as u64;
-        self.transport
-            .send_text(text)
-            .await
-            .map_err(ClientError::Transport)
+        self.transport.send_text(text).await.map_err(ClientError::Transport)
     }
 
     async fn recv(&mut self) -> Result<ServerMessage, ClientError> {
-        let text = self
-            .transport
-            .recv_text()
-            .await
-            .map_err(ClientError::Transport)?
-            .ok_or(ClientError::Closed)?;
+        let text = self.transport.recv_text().await.map_err(ClientError::Transport)?.ok_or(ClientError::Closed)?;
         self.bytes_down += text.len() as u64;
-        serde_json::from_str(&text)
-            .map_err(|e| ClientError::Protocol(format!("bad server message: {e}")))
+        serde_json::from_str(&text).map_err(|e| ClientError::Protocol(format!("bad server message: {e}")))
     }
 
     async fn fetch_model(&mut self, version: u64) -> Result<NamedTensors, ClientError> {
-        let bytes = self
-            .transport
-            .fetch_model(version)
-            .await
-            .map_err(ClientError::Transport)?;
+        let bytes = self.transport.fetch_model(version).await.map_err(ClientError::Transport)?;
         self.bytes_down += bytes.len() as u64;
-        let tensors = NamedTensors::from_safetensors(&bytes)
-            .map_err(|source| ClientError::Model { version, source })?;
-        tensors
-            .validate(&tensors.spec())
-            .map_err(|source| ClientError::Model { version, source })?;
+        let tensors =
+            NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Model { version, source })?;
+        tensors.validate(&tensors.spec()).map_err(|source| ClientError::Model { version, source })?;
         Ok(tensors)
     }
 }

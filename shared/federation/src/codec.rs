@@ -50,10 +50,7 @@ impl FrameHeader {
         }
         let protocol_version = r.u16()?;
         if protocol_version != PROTOCOL_VERSION {
-            return Err(CodecError::ProtocolVersion {
-                expected: PROTOCOL_VERSION,
-                got: protocol_version,
-            });
+            return Err(CodecError::ProtocolVersion { expected: PROTOCOL_VERSION, got: protocol_version });
         }
         Ok(Self {
             protocol_version,
@@ -69,11 +66,7 @@ impl FrameHeader {
 
 /// Length of the payload [`encode_payload`] makes for tensors of this spec.
 pub fn payload_len(spec: &TensorSpec) -> usize {
-    4 + spec
-        .iter()
-        .map(|(name, shape)| 4 + name.len() + 4 + 8 * shape.len())
-        .sum::<usize>()
-        + spec.byte_size()
+    4 + spec.iter().map(|(name, shape)| 4 + name.len() + 4 + 8 * shape.len()).sum::<usize>() + spec.byte_size()
 }
 
 pub fn encode_payload(tensors: &NamedTensors) -> Vec<u8> {
@@ -105,39 +98,23 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec) -> Result<NamedTensors,
             .to_owned();
         let rank = r.u32()? as usize;
         if rank > MAX_RANK {
-            return Err(CodecError::Malformed(format!(
-                "tensor `{name}` has rank {rank} (max {MAX_RANK})"
-            )));
+            return Err(CodecError::Malformed(format!("tensor `{name}` has rank {rank} (max {MAX_RANK})")));
         }
-        let shape = (0..rank)
-            .map(|_| r.u64().map(|d| d as usize))
-            .collect::<Result<Vec<_>, _>>()?;
+        let shape = (0..rank).map(|_| r.u64().map(|d| d as usize)).collect::<Result<Vec<_>, _>>()?;
         let numel = shape
             .iter()
             .try_fold(1usize, |acc, &d| acc.checked_mul(d))
             .filter(|n| n.checked_mul(4).is_some_and(|b| b <= r.remaining()))
-            .ok_or_else(|| {
-                CodecError::Malformed(format!(
-                    "tensor `{name}` of shape {shape:?} overruns the payload"
-                ))
-            })?;
-        let values = r
-            .bytes(numel * 4)?
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
+            .ok_or_else(|| CodecError::Malformed(format!("tensor `{name}` of shape {shape:?} overruns the payload")))?;
+        let values =
+            r.bytes(numel * 4)?.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
         if out.get(&name).is_some() {
-            return Err(CodecError::Malformed(format!(
-                "tensor `{name}` appears twice"
-            )));
+            return Err(CodecError::Malformed(format!("tensor `{name}` appears twice")));
         }
         out.insert(name, shape, values)?;
     }
     if r.remaining() != 0 {
-        return Err(CodecError::Malformed(format!(
-            "{} trailing bytes after the last tensor",
-            r.remaining()
-        )));
+        return Err(CodecError::Malformed(format!("{} trailing bytes after the last tensor", r.remaining())));
     }
     out.validate(spec)?;
     Ok(out)
@@ -145,17 +122,10 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec) -> Result<NamedTensors,
 
 /// Splits an encoded payload into frames of at most `max_frame_bytes` (header included).
 pub fn encode_frames(payload: &[u8], round: u64, max_frame_bytes: usize) -> Vec<Vec<u8>> {
-    assert!(
-        max_frame_bytes > HEADER_LEN,
-        "frame limit must exceed the {HEADER_LEN}-byte header"
-    );
+    assert!(max_frame_bytes > HEADER_LEN, "frame limit must exceed the {HEADER_LEN}-byte header");
     let chunk = max_frame_bytes - HEADER_LEN;
     let crc32 = crc32fast::hash(payload);
-    let chunks: Vec<&[u8]> = if payload.is_empty() {
-        vec![&[][..]]
-    } else {
-        payload.chunks(chunk).collect()
-    };
+    let chunks: Vec<&[u8]> = if payload.is_empty() { vec![&[][..]] } else { payload.chunks(chunk).collect() };
     let chunk_count = chunks.len() as u32;
     chunks
         .iter()
@@ -194,10 +164,7 @@ impl UpdateLimits {
     /// Limits for updates of `spec`: the exact payload plus `headroom` bytes (so an extra tensor is reported as
     /// unexpected rather than oversized).
     pub fn for_spec(spec: &TensorSpec, max_frame_bytes: usize, headroom: u64) -> Self {
-        Self {
-            max_frame_bytes,
-            max_payload_bytes: payload_len(spec) as u64 + headroom,
-        }
+        Self { max_frame_bytes, max_payload_bytes: payload_len(spec) as u64 + headroom }
     }
 }
 
@@ -215,26 +182,16 @@ impl Reassembler {
     pub fn start(frame: &[u8], limits: UpdateLimits) -> Result<Self, CodecError> {
         let header = Self::check_frame(frame, &limits)?;
         if header.chunk_index != 0 {
-            return Err(CodecError::Malformed(format!(
-                "update starts at chunk {}, expected 0",
-                header.chunk_index
-            )));
+            return Err(CodecError::Malformed(format!("update starts at chunk {}, expected 0", header.chunk_index)));
         }
         if header.chunk_count == 0 {
             return Err(CodecError::Malformed("chunk count is 0".into()));
         }
         if header.payload_len > limits.max_payload_bytes {
-            return Err(CodecError::Oversized {
-                len: header.payload_len,
-                limit: limits.max_payload_bytes,
-            });
+            return Err(CodecError::Oversized { len: header.payload_len, limit: limits.max_payload_bytes });
         }
-        let mut r = Self {
-            limits,
-            first: header,
-            payload: Vec::with_capacity(header.payload_len as usize),
-            next_index: 0,
-        };
+        let mut r =
+            Self { limits, first: header, payload: Vec::with_capacity(header.payload_len as usize), next_index: 0 };
         r.append(header, frame)?;
         Ok(r)
     }
@@ -252,20 +209,10 @@ impl Reassembler {
     pub fn push(&mut self, frame: &[u8]) -> Result<(), CodecError> {
         let header = Self::check_frame(frame, &self.limits)?;
         let first = &self.first;
-        if (
-            header.round,
-            header.chunk_count,
-            header.payload_len,
-            header.crc32,
-        ) != (
-            first.round,
-            first.chunk_count,
-            first.payload_len,
-            first.crc32,
-        ) {
-            return Err(CodecError::Malformed(
-                "frame header disagrees with the first frame of the update".into(),
-            ));
+        if (header.round, header.chunk_count, header.payload_len, header.crc32)
+            != (first.round, first.chunk_count, first.payload_len, first.crc32)
+        {
+            return Err(CodecError::Malformed("frame header disagrees with the first frame of the update".into()));
         }
         self.append(header, frame)
     }
@@ -279,27 +226,18 @@ impl Reassembler {
             )));
         }
         if self.payload.len() as u64 != self.first.payload_len {
-            return Err(CodecError::Truncated {
-                needed: self.first.payload_len as usize,
-                got: self.payload.len(),
-            });
+            return Err(CodecError::Truncated { needed: self.first.payload_len as usize, got: self.payload.len() });
         }
         let got = crc32fast::hash(&self.payload);
         if got != self.first.crc32 {
-            return Err(CodecError::ChecksumMismatch {
-                expected: self.first.crc32,
-                got,
-            });
+            return Err(CodecError::ChecksumMismatch { expected: self.first.crc32, got });
         }
         Ok(self.payload)
     }
 
     fn check_frame(frame: &[u8], limits: &UpdateLimits) -> Result<FrameHeader, CodecError> {
         if frame.len() > limits.max_frame_bytes {
-            return Err(CodecError::FrameTooLarge {
-                len: frame.len(),
-                limit: limits.max_frame_bytes,
-            });
+            return Err(CodecError::FrameTooLarge { len: frame.len(), limit: limits.max_frame_bytes });
         }
         let header = FrameHeader::parse(frame)?;
         if frame.len() != HEADER_LEN + header.chunk_len as usize {
@@ -321,9 +259,7 @@ impl Reassembler {
         }
         let total = self.payload.len() as u64 + header.chunk_len as u64;
         if total > self.first.payload_len {
-            return Err(CodecError::Malformed(
-                "chunks exceed the announced payload length".into(),
-            ));
+            return Err(CodecError::Malformed("chunks exceed the announced payload length".into()));
         }
         self.payload.extend_from_slice(&frame[HEADER_LEN..]);
         self.next_index += 1;
@@ -347,10 +283,7 @@ impl<'a> Reader<'a> {
 
     fn bytes(&mut self, n: usize) -> Result<&'a [u8], CodecError> {
         if self.remaining() < n {
-            return Err(CodecError::Truncated {
-                needed: self.pos + n,
-                got: self.buf.len(),
-            });
+            return Err(CodecError::Truncated { needed: self.pos + n, got: self.buf.len() });
         }
         let out = &self.buf[self.pos..self.pos + n];
         self.pos += n;
@@ -358,21 +291,15 @@ impl<'a> Reader<'a> {
     }
 
     fn u16(&mut self) -> Result<u16, CodecError> {
-        Ok(u16::from_le_bytes(
-            self.bytes(2)?.try_into().expect("2 bytes"),
-        ))
+        Ok(u16::from_le_bytes(self.bytes(2)?.try_into().expect("2 bytes")))
     }
 
     fn u32(&mut self) -> Result<u32, CodecError> {
-        Ok(u32::from_le_bytes(
-            self.bytes(4)?.try_into().expect("4 bytes"),
-        ))
+        Ok(u32::from_le_bytes(self.bytes(4)?.try_into().expect("4 bytes")))
     }
 
     fn u64(&mut self) -> Result<u64, CodecError> {
-        Ok(u64::from_le_bytes(
-            self.bytes(8)?.try_into().expect("8 bytes"),
-        ))
+        Ok(u64::from_le_bytes(self.bytes(8)?.try_into().expect("8 bytes")))
     }
 }
 
@@ -384,12 +311,7 @@ mod tests {
 
     fn tensors() -> NamedTensors {
         let mut t = NamedTensors::new();
-        t.insert(
-            "expert.w",
-            vec![3, 50],
-            (0..150).map(|i| i as f32 * 0.25).collect(),
-        )
-        .unwrap();
+        t.insert("expert.w", vec![3, 50], (0..150).map(|i| i as f32 * 0.25).collect()).unwrap();
         t.insert("expert.b", vec![3], vec![1.0, 2.0, 3.0]).unwrap();
         t
     }
@@ -427,10 +349,7 @@ mod tests {
 
         let mut bad_magic = frames[0].clone();
         bad_magic[0] = b'X';
-        assert_eq!(
-            Reassembler::start(&bad_magic, limits(&spec)).unwrap_err(),
-            CodecError::BadMagic
-        );
+        assert_eq!(Reassembler::start(&bad_magic, limits(&spec)).unwrap_err(), CodecError::BadMagic);
 
         let mut version = frames[0].clone();
         version[4..6].copy_from_slice(&(PROTOCOL_VERSION + 1).to_le_bytes());
@@ -442,35 +361,17 @@ mod tests {
 
         let mut reordered = frames.clone();
         reordered.swap(1, 2);
-        assert_eq!(
-            reassemble(&reordered, limits(&spec)).unwrap_err().code(),
-            ErrorCode::MalformedFrame
-        );
+        assert_eq!(reassemble(&reordered, limits(&spec)).unwrap_err().code(), ErrorCode::MalformedFrame);
 
         let mut flipped = frames.clone();
         let last = flipped.last_mut().unwrap();
         *last.last_mut().unwrap() ^= 1;
-        assert!(matches!(
-            reassemble(&flipped, limits(&spec)),
-            Err(CodecError::ChecksumMismatch { .. })
-        ));
+        assert!(matches!(reassemble(&flipped, limits(&spec)), Err(CodecError::ChecksumMismatch { .. })));
 
-        let small = UpdateLimits {
-            max_frame_bytes: 100,
-            max_payload_bytes: 10,
-        };
-        assert_eq!(
-            Reassembler::start(&frames[0], small).unwrap_err().code(),
-            ErrorCode::Oversized
-        );
-        let tiny_frames = UpdateLimits {
-            max_frame_bytes: 50,
-            max_payload_bytes: 1 << 20,
-        };
-        assert!(matches!(
-            Reassembler::start(&frames[0], tiny_frames),
-            Err(CodecError::FrameTooLarge { .. })
-        ));
+        let small = UpdateLimits { max_frame_bytes: 100, max_payload_bytes: 10 };
+        assert_eq!(Reassembler::start(&frames[0], small).unwrap_err().code(), ErrorCode::Oversized);
+        let tiny_frames = UpdateLimits { max_frame_bytes: 50, max_payload_bytes: 1 << 20 };
+        assert!(matches!(Reassembler::start(&frames[0], tiny_frames), Err(CodecError::FrameTooLarge { .. })));
     }
 
     #[test]
@@ -480,33 +381,16 @@ mod tests {
         let mut nan = t.clone();
         nan.get_mut("expert.w").unwrap().values[3] = f32::INFINITY;
         let err = decode_payload(&encode_payload(&nan), &spec).unwrap_err();
-        assert_eq!(
-            err,
-            CodecError::Tensor(TensorError::NonFinite {
-                name: "expert.w".into(),
-                index: 3
-            })
-        );
+        assert_eq!(err, CodecError::Tensor(TensorError::NonFinite { name: "expert.w".into(), index: 3 }));
 
         let mut extra = t.clone();
         extra.insert("vision.frozen", vec![1], vec![0.0]).unwrap();
-        assert_eq!(
-            decode_payload(&encode_payload(&extra), &spec)
-                .unwrap_err()
-                .code(),
-            ErrorCode::UnexpectedTensor
-        );
+        assert_eq!(decode_payload(&encode_payload(&extra), &spec).unwrap_err().code(), ErrorCode::UnexpectedTensor);
 
         let mut payload = encode_payload(&t);
         payload.push(0);
-        assert_eq!(
-            decode_payload(&payload, &spec).unwrap_err().code(),
-            ErrorCode::MalformedFrame
-        );
+        assert_eq!(decode_payload(&payload, &spec).unwrap_err().code(), ErrorCode::MalformedFrame);
         let payload = encode_payload(&t);
-        assert!(matches!(
-            decode_payload(&payload[..payload.len() - 1], &spec),
-            Err(CodecError::Malformed(_))
-        ));
+        assert!(matches!(decode_payload(&payload[..payload.len() - 1], &spec), Err(CodecError::Malformed(_))));
     }
 }

@@ -9,21 +9,13 @@ pub type BoxError = Box<dyn std::error::Error + Send + Sync>;
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum TensorError {
     #[error("tensor of shape {shape:?} needs {expected} values, got {got}")]
-    LengthMismatch {
-        shape: Vec<usize>,
-        expected: usize,
-        got: usize,
-    },
+    LengthMismatch { shape: Vec<usize>, expected: usize, got: usize },
     #[error("missing tensor `{0}`")]
     Missing(String),
     #[error("unexpected tensor `{0}` (not in the trainable set)")]
     Unexpected(String),
     #[error("tensor `{name}` has shape {got:?}, expected {expected:?}")]
-    ShapeMismatch {
-        name: String,
-        expected: Vec<usize>,
-        got: Vec<usize>,
-    },
+    ShapeMismatch { name: String, expected: Vec<usize>, got: Vec<usize> },
     #[error("tensor `{name}` holds a NaN or infinite value at index {index}")]
     NonFinite { name: String, index: usize },
     #[error("tensor `{name}` has dtype {dtype}, only F32 is exchanged")]
@@ -43,9 +35,7 @@ impl TensorError {
         match self {
             Self::Missing(_) => ErrorCode::MissingTensor,
             Self::Unexpected(_) => ErrorCode::UnexpectedTensor,
-            Self::ShapeMismatch { .. } | Self::LengthMismatch { .. } | Self::Dtype { .. } => {
-                ErrorCode::ShapeMismatch
-            }
+            Self::ShapeMismatch { .. } | Self::LengthMismatch { .. } | Self::Dtype { .. } => ErrorCode::ShapeMismatch,
             Self::NonFinite { .. } => ErrorCode::NonFinite,
             Self::Safetensors(_) => ErrorCode::MalformedFrame,
         }
@@ -79,9 +69,7 @@ impl CodecError {
             Self::ProtocolVersion { .. } => ErrorCode::ProtocolVersion,
             Self::FrameTooLarge { .. } | Self::Oversized { .. } => ErrorCode::Oversized,
             Self::ChecksumMismatch { .. } => ErrorCode::ChecksumMismatch,
-            Self::BadMagic | Self::Truncated { .. } | Self::Malformed(_) => {
-                ErrorCode::MalformedFrame
-            }
+            Self::BadMagic | Self::Truncated { .. } | Self::Malformed(_) => ErrorCode::MalformedFrame,
             Self::Tensor(e) => e.code(),
         }
     }

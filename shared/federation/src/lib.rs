@@ -12,15 +12,15 @@ pub mod strategy;
 pub mod tensors;
 
 pub use client::{
-    ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput,
-    LocalTrainer, RolloutOutput, TrainOutput, Video, run_client,
+    ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput, LocalTrainer, RolloutOutput,
+    TrainOutput, Video, run_client,
 };
 pub use codec::{Reassembler, UpdateLimits};
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator};
 pub use protocol::{
-    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest,
-    RoundMetrics, RoundTask, ServerMessage, StrategyParams, VolunteerSetup,
+    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
+    ServerMessage, StrategyParams, VolunteerSetup,
 };
 pub use strategy::{FedAvg, Strategy};
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

@@ -160,10 +160,7 @@ pub enum ErrorCode {
 impl ErrorCode {
     /// Errors after which the server closes the connection.
     pub fn is_fatal(self) -> bool {
-        matches!(
-            self,
-            Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown
-        )
+        matches!(self, Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown)
     }
 
     pub fn as_str(self) -> &'static str {
@@ -225,41 +222,22 @@ mod tests {
             protocol_version: PROTOCOL_VERSION,
             auth_token: None,
             name: "c0".into(),
-            capabilities: Capabilities {
-                backend: "ndarray".into(),
-                memory_bytes: 1 << 30,
-            },
+            capabilities: Capabilities { backend: "ndarray".into(), memory_bytes: 1 << 30 },
         };
         let json = serde_json::to_string(&join).unwrap();
-        assert!(
-            json.starts_with(&format!(r#"{{"type":"join","protocol_version":{PROTOCOL_VERSION}"#)),
-            "{json}"
-        );
+        assert!(json.starts_with(&format!(r#"{{"type":"join","protocol_version":{PROTOCOL_VERSION}"#)), "{json}");
         assert_eq!(serde_json::from_str::<ClientMessage>(&json).unwrap(), join);
 
-        let err = ServerMessage::Error {
-            code: ErrorCode::NonFinite,
-            message: "x".into(),
-        };
+        let err = ServerMessage::Error { code: ErrorCode::NonFinite, message: "x".into() };
         let json = serde_json::to_string(&err).unwrap();
-        assert_eq!(
-            json,
-            r#"{"type":"error","code":"non_finite","message":"x"}"#
-        );
+        assert_eq!(json, r#"{"type":"error","code":"non_finite","message":"x"}"#);
         assert_eq!(serde_json::from_str::<ServerMessage>(&json).unwrap(), err);
     }
 
     #[test]
     fn code_strings_match_serde() {
-        for code in [
-            ErrorCode::ProtocolVersion,
-            ErrorCode::StaleRound,
-            ErrorCode::MalformedFrame,
-        ] {
-            assert_eq!(
-                serde_json::to_string(&code).unwrap(),
-                format!("\"{}\"", code.as_str())
-            );
+        for code in [ErrorCode::ProtocolVersion, ErrorCode::StaleRound, ErrorCode::MalformedFrame] {
+            assert_eq!(serde_json::to_string(&code).unwrap(), format!("\"{}\"", code.as_str()));
         }
     }
 }

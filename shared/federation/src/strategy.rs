@@ -26,10 +26,7 @@ pub struct FedAvg;
 
 impl Strategy for FedAvg {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams {
-            name: "fedavg".into(),
-            proximal_mu: 0.0,
-        }
+        StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 }
     }
 
     fn aggregate(
@@ -42,9 +39,7 @@ impl Strategy for FedAvg {
         }
         let spec = global.spec();
         for (index, (update, _)) in updates.iter().enumerate() {
-            update
-                .validate(&spec)
-                .map_err(|source| AggregateError::Mismatch { index, source })?;
+            update.validate(&spec).map_err(|source| AggregateError::Mismatch { index, source })?;
         }
         let total: u64 = updates.iter().map(|(_, n)| n).sum();
         if total == 0 {
@@ -55,17 +50,13 @@ impl Strategy for FedAvg {
             let mut acc = vec![0f64; t.values.len()];
             for (update, n) in updates {
                 let w = *n as f64;
-                let values = &update
-                    .get(name)
-                    .expect("validated against the global spec")
-                    .values;
+                let values = &update.get(name).expect("validated against the global spec").values;
                 for (a, v) in acc.iter_mut().zip(values) {
                     *a += w * f64::from(*v);
                 }
             }
             let values = acc.into_iter().map(|a| (a / total as f64) as f32).collect();
-            out.insert(name, t.shape.clone(), values)
-                .expect("shape taken from the global model");
+            out.insert(name, t.shape.clone(), values).expect("shape taken from the global model");
         }
         Ok(out)
     }
@@ -93,11 +84,7 @@ mod tests {
     fn fedavg_accumulates_in_f64() {
         // Summed in f32, 1e8 + 1 rounds back to 1e8 and the mean would come out 0.
         let global = one([0.0, 0.0]);
-        let updates = [
-            (one([1.0e8, 1.0]), 1),
-            (one([1.0, 1.0e8]), 1),
-            (one([-1.0e8, -1.0e8]), 1),
-        ];
+        let updates = [(one([1.0e8, 1.0]), 1), (one([1.0, 1.0e8]), 1), (one([-1.0e8, -1.0e8]), 1)];
         let out = FedAvg.aggregate(&global, &updates).unwrap();
         assert_eq!(out.get("w").unwrap().values, vec![1.0 / 3.0, 1.0 / 3.0]);
     }
@@ -105,14 +92,8 @@ mod tests {
     #[test]
     fn fedavg_refuses_empty_zero_and_mismatched() {
         let global = one([0.0, 0.0]);
-        assert_eq!(
-            FedAvg.aggregate(&global, &[]),
-            Err(AggregateError::NoUpdates)
-        );
-        assert_eq!(
-            FedAvg.aggregate(&global, &[(one([1.0, 1.0]), 0)]),
-            Err(AggregateError::ZeroExamples)
-        );
+        assert_eq!(FedAvg.aggregate(&global, &[]), Err(AggregateError::NoUpdates));
+        assert_eq!(FedAvg.aggregate(&global, &[(one([1.0, 1.0]), 0)]), Err(AggregateError::ZeroExamples));
         let mut other = NamedTensors::new();
         other.insert("v", vec![2], vec![0.0, 0.0]).unwrap();
         assert!(matches!(

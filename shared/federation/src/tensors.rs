@@ -18,11 +18,7 @@ impl Tensor {
     pub fn new(shape: Vec<usize>, values: Vec<f32>) -> Result<Self, TensorError> {
         let expected = shape.iter().product::<usize>();
         if expected != values.len() {
-            return Err(TensorError::LengthMismatch {
-                shape,
-                expected,
-                got: values.len(),
-            });
+            return Err(TensorError::LengthMismatch { shape, expected, got: values.len() });
         }
         Ok(Self { shape, values })
     }
@@ -46,14 +42,8 @@ impl NamedTensors {
     }
 
     /// Inserts (or replaces) a tensor, checking its length against its shape.
-    pub fn insert(
-        &mut self,
-        name: impl Into<String>,
-        shape: Vec<usize>,
-        values: Vec<f32>,
-    ) -> Result<(), TensorError> {
-        self.tensors
-            .insert(name.into(), Tensor::new(shape, values)?);
+    pub fn insert(&mut self, name: impl Into<String>, shape: Vec<usize>, values: Vec<f32>) -> Result<(), TensorError> {
+        self.tensors.insert(name.into(), Tensor::new(shape, values)?);
         Ok(())
     }
 
@@ -107,13 +97,7 @@ impl NamedTensors {
 
     /// The names and shapes of these tensors.
     pub fn spec(&self) -> TensorSpec {
-        TensorSpec {
-            shapes: self
-                .tensors
-                .iter()
-                .map(|(n, t)| (n.clone(), t.shape.clone()))
-                .collect(),
-        }
+        TensorSpec { shapes: self.tensors.iter().map(|(n, t)| (n.clone(), t.shape.clone())).collect() }
     }
 
     /// Checks these tensors against `spec`: same names, same shapes, finite values.
@@ -134,10 +118,7 @@ impl NamedTensors {
                 });
             }
             if let Some(index) = t.values.iter().position(|v| !v.is_finite()) {
-                return Err(TensorError::NonFinite {
-                    name: name.clone(),
-                    index,
-                });
+                return Err(TensorError::NonFinite { name: name.clone(), index });
             }
         }
         Ok(())
@@ -148,13 +129,7 @@ impl NamedTensors {
         let bytes: Vec<(&str, Vec<u8>, &[usize])> = self
             .tensors
             .iter()
-            .map(|(n, t)| {
-                (
-                    n.as_str(),
-                    t.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                    &t.shape[..],
-                )
-            })
+            .map(|(n, t)| (n.as_str(), t.values.iter().flat_map(|v| v.to_le_bytes()).collect(), &t.shape[..]))
             .collect();
         let views = bytes
             .iter()
@@ -169,16 +144,9 @@ impl NamedTensors {
         let mut out = Self::new();
         for (name, view) in st.tensors() {
             if view.dtype() != Dtype::F32 {
-                return Err(TensorError::Dtype {
-                    name,
-                    dtype: format!("{:?}", view.dtype()),
-                });
+                return Err(TensorError::Dtype { name, dtype: format!("{:?}", view.dtype()) });
             }
-            let values = view
-                .data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect();
+            let values = view.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
             out.insert(name, view.shape().to_vec(), values)?;
         }
         Ok(out)
@@ -206,11 +174,7 @@ impl TensorSpec {
 
     /// Bytes of f32 data a conforming set of tensors holds.
     pub fn byte_size(&self) -> usize {
-        self.shapes
-            .values()
-            .map(|s| s.iter().product::<usize>())
-            .sum::<usize>()
-            * size_of::<f32>()
+        self.shapes.values().map(|s| s.iter().product::<usize>()).sum::<usize>() * size_of::<f32>()
     }
 }
 
@@ -227,17 +191,8 @@ mod tests {
 
     #[test]
     fn insert_checks_length() {
-        let err = NamedTensors::new()
-            .insert("x", vec![2, 3], vec![0.0; 5])
-            .unwrap_err();
-        assert!(matches!(
-            err,
-            TensorError::LengthMismatch {
-                expected: 6,
-                got: 5,
-                ..
-            }
-        ));
+        let err = NamedTensors::new().insert("x", vec![2, 3], vec![0.0; 5]).unwrap_err();
+        assert!(matches!(err, TensorError::LengthMismatch { expected: 6, got: 5, .. }));
     }
 
     #[test]
@@ -255,9 +210,7 @@ mod tests {
         changed.get_mut("b").unwrap().values[1] = -2.0001;
         assert_ne!(t.checksum(), changed.checksum());
         let mut reshaped = t.clone();
-        reshaped
-            .insert("a", vec![4], vec![0.5, 1.5, 2.5, 3.5])
-            .unwrap();
+        reshaped.insert("a", vec![4], vec![0.5, 1.5, 2.5, 3.5]).unwrap();
         assert_ne!(t.checksum(), reshaped.checksum());
         assert_eq!(t.checksum(), sample().checksum());
     }
@@ -267,31 +220,16 @@ mod tests {
         let spec = sample().spec();
         let mut missing = sample();
         missing.tensors.remove("a");
-        assert_eq!(
-            missing.validate(&spec),
-            Err(TensorError::Missing("a".into()))
-        );
+        assert_eq!(missing.validate(&spec), Err(TensorError::Missing("a".into())));
         let mut extra = sample();
         extra.insert("c", vec![1], vec![0.0]).unwrap();
-        assert_eq!(
-            extra.validate(&spec),
-            Err(TensorError::Unexpected("c".into()))
-        );
+        assert_eq!(extra.validate(&spec), Err(TensorError::Unexpected("c".into())));
         let mut shaped = sample();
         shaped.insert("a", vec![4], vec![0.0; 4]).unwrap();
-        assert!(matches!(
-            shaped.validate(&spec),
-            Err(TensorError::ShapeMismatch { .. })
-        ));
+        assert!(matches!(shaped.validate(&spec), Err(TensorError::ShapeMismatch { .. })));
         let mut nan = sample();
         nan.get_mut("b").unwrap().values[1] = f32::NAN;
-        assert_eq!(
-            nan.validate(&spec),
-            Err(TensorError::NonFinite {
-                name: "b".into(),
-                index: 1
-            })
-        );
+        assert_eq!(nan.validate(&spec), Err(TensorError::NonFinite { name: "b".into(), index: 1 }));
         assert_eq!(sample().validate(&spec), Ok(()));
     }
 

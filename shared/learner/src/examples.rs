@@ -26,7 +26,9 @@ pub fn shard_stats(shard: &ClientShard) -> Result<NormStats, PolicyError> {
             .stats
             .get(feature)
             .ok_or_else(|| PolicyError::Input(format!("shard has no statistics for {feature}")))?;
-        let get = |k: &str| s.get(k).cloned().ok_or_else(|| PolicyError::Input(format!("shard statistics of {feature} lack {k}")));
+        let get = |k: &str| {
+            s.get(k).cloned().ok_or_else(|| PolicyError::Input(format!("shard statistics of {feature} lack {k}")))
+        };
         stats.features.insert(feature.into(), FeatureStats { mean: get("mean")?, std: get("std")? });
     }
     Ok(stats)
@@ -69,7 +71,10 @@ impl ShardExamples {
             .map(|cam| {
                 let mut chw = vec![0.0f32; b * 3 * h * w];
                 for (n, &row) in rows.iter().enumerate() {
-                    let hwc = self.shard.image(cam, row).ok_or_else(|| PolicyError::Input(format!("shard row {row} has no {cam} image")))?;
+                    let hwc = self
+                        .shard
+                        .image(cam, row)
+                        .ok_or_else(|| PolicyError::Input(format!("shard row {row} has no {cam} image")))?;
                     rgb_hwc_to_chw(hwc, &mut chw[n * 3 * h * w..(n + 1) * 3 * h * w]);
                 }
                 Ok(HostTensor::new(vec![b, 3, h, w], chw))
@@ -87,8 +92,10 @@ impl ShardExamples {
         let mut lang_mask = Vec::with_capacity(b * len);
         for &row in rows {
             state.extend(state_stats.normalize(&self.shard.state[row * sd..(row + 1) * sd]));
-            let (chunk_values, pad) =
-                self.shard.action_chunk(row, chunk).ok_or_else(|| PolicyError::Input(format!("shard row {row} is in no episode")))?;
+            let (chunk_values, pad) = self
+                .shard
+                .action_chunk(row, chunk)
+                .ok_or_else(|| PolicyError::Input(format!("shard row {row} is in no episode")))?;
             actions.extend(action_stats.normalize(&chunk_values));
             is_pad.extend(pad);
             let task = self.shard.task_index[row] as usize;

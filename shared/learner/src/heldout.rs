@@ -6,8 +6,8 @@ use fedvla_policy::batch::{Prepared, prepare_actions};
 use fedvla_policy::smolvla::{gaussian_noise, sample_times};
 use fedvla_policy::weights::HostTensor;
 use fedvla_policy::{PolicyError, SmolVla};
-use rand::rngs::StdRng;
 use rand::SeedableRng;
+use rand::rngs::StdRng;
 
 use crate::examples::ShardExamples;
 
@@ -37,7 +37,11 @@ pub struct HeldOutMetrics {
     pub action_l1: f64,
 }
 
-pub fn heldout_metrics(model: &SmolVla, examples: &ShardExamples, held_out: &HeldOut) -> Result<HeldOutMetrics, PolicyError> {
+pub fn heldout_metrics(
+    model: &SmolVla,
+    examples: &ShardExamples,
+    held_out: &HeldOut,
+) -> Result<HeldOutMetrics, PolicyError> {
     if held_out.rows.is_empty() {
         return Err(PolicyError::Input("no held-out rows to evaluate on".into()));
     }
@@ -53,7 +57,14 @@ pub fn heldout_metrics(model: &SmolVla, examples: &ShardExamples, held_out: &Hel
         let noise = gaussian_noise(&mut rng, [b, cfg.chunk_size, cfg.max_action_dim], &device);
         let time = sample_times(&mut rng, b);
         let actions = batch.actions.as_ref().expect("shard batches carry actions");
-        let out = model.forward_loss(&obs, prepare_actions(cfg, actions, &device), noise, &time, batch.action_is_pad.as_deref(), None);
+        let out = model.forward_loss(
+            &obs,
+            prepare_actions(cfg, actions, &device),
+            noise,
+            &time,
+            batch.action_is_pad.as_deref(),
+            None,
+        );
         loss_sum += out.loss.into_scalar::<f64>() * b as f64;
         n_loss += b;
 
@@ -75,5 +86,9 @@ pub fn heldout_metrics(model: &SmolVla, examples: &ShardExamples, held_out: &Hel
             n_act += a;
         }
     }
-    Ok(HeldOutMetrics { loss: loss_sum / n_loss as f64, action_mse: se / n_act.max(1) as f64, action_l1: ae / n_act.max(1) as f64 })
+    Ok(HeldOutMetrics {
+        loss: loss_sum / n_loss as f64,
+        action_mse: se / n_act.max(1) as f64,
+        action_l1: ae / n_act.max(1) as f64,
+    })
 }

@@ -18,7 +18,9 @@ fn camera_for(key: &str, slot: usize) -> Result<Camera, PolicyError> {
         .into_iter()
         .find(|c| key.rsplit('.').next() == Some(c.name()))
         .or_else(|| Camera::ALL.get(slot).copied())
-        .ok_or_else(|| PolicyError::Input(format!("policy camera {key} has no simulated counterpart (the sim has top and wrist)")))
+        .ok_or_else(|| {
+            PolicyError::Input(format!("policy camera {key} has no simulated counterpart (the sim has top and wrist)"))
+        })
 }
 
 /// A task tokenised as the policy reads it: `(ids, mask, padded length)`.
@@ -35,7 +37,13 @@ pub struct SimPolicy {
 
 impl SimPolicy {
     /// `weights` holds every tensor of `cfg`; the policy is tokenised once for the sim's task.
-    pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, stats: NormStats, tokenizer: &Tokenizer, device: &Device) -> Result<Self, PolicyError> {
+    pub fn new(
+        cfg: &SmolVlaConfig,
+        weights: &WeightMap,
+        stats: NormStats,
+        tokenizer: &Tokenizer,
+        device: &Device,
+    ) -> Result<Self, PolicyError> {
         fedvla_policy::weights::check_keys(&cfg.param_specs(), weights, "rollout policy")?;
         let tokens = tokenizer.encode_batch(&[TASK], cfg.tokenizer_max_length, cfg.pad_language_to == "max_length")?;
         let store = ParamStore::upload(weights.iter(), device, false);
@@ -89,7 +97,8 @@ impl SimPolicy {
         let batch = self.observe(scene)?;
         let obs = Prepared::new(cfg, &batch, &self.device)?;
         let noise = gaussian_noise(rng, [1, cfg.chunk_size, cfg.max_action_dim], &self.device);
-        let chunk = HostTensor::from_tensor(self.model.sample_actions(&obs, noise, None).narrow(2, 0, cfg.action_dim()));
+        let chunk =
+            HostTensor::from_tensor(self.model.sample_actions(&obs, noise, None).narrow(2, 0, cfg.action_dim()));
         let actions = self.stats.get("action")?.unnormalize(&chunk.data);
         Ok(actions
             .chunks_exact(cfg.action_dim())
@@ -143,7 +152,9 @@ impl<'a> Episode<'a> {
             Some(action) => action,
             None => {
                 self.queue = self.policy.act(&self.scene, &mut self.rng)?.into_iter();
-                self.queue.next().ok_or_else(|| PolicyError::Input("the policy returned an empty action chunk".into()))?
+                self.queue
+                    .next()
+                    .ok_or_else(|| PolicyError::Input("the policy returned an empty action chunk".into()))?
             }
         };
         self.scene.step(action);

@@ -3,7 +3,10 @@
 //! the browser; only the burn device differs.
 
 use burn::tensor::Device;
-use fedvla_federation::{BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutEpisode, RolloutOutput, RolloutRequest, RoundTask, TrainOutput};
+use fedvla_federation::{
+    BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutEpisode, RolloutOutput, RolloutRequest,
+    RoundTask, TrainOutput,
+};
 use fedvla_policy::weights::ParamStore;
 use fedvla_policy::{SmolVla, SmolVlaConfig, Trainer, WeightMap};
 use rand::SeedableRng;
@@ -39,11 +42,25 @@ pub struct SmolVlaTrainer {
 impl SmolVlaTrainer {
     /// `weights` is the full initial checkpoint (frozen + trainable); `seed` drives this client's
     /// flow-matching noise and times; `backend` names the device for the server's client table.
-    pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, examples: ShardExamples, seed: u64, device: &Device, backend: &str) -> Result<Self, BoxError> {
+    pub fn new(
+        cfg: &SmolVlaConfig,
+        weights: &WeightMap,
+        examples: ShardExamples,
+        seed: u64,
+        device: &Device,
+        backend: &str,
+    ) -> Result<Self, BoxError> {
         let trainer = Trainer::new(cfg, weights, device, seed)?;
         let store = ParamStore::upload(weights.iter(), &Device::flex(), false);
         let held_out = HeldOut::new(&examples.held_out_rows);
-        Ok(Self { trainer, global_cpu: SmolVla::new(cfg, &store, &store), examples, held_out, backend: backend.into(), rollout_tokens: None })
+        Ok(Self {
+            trainer,
+            global_cpu: SmolVla::new(cfg, &store, &store),
+            examples,
+            held_out,
+            backend: backend.into(),
+            rollout_tokens: None,
+        })
     }
 
     /// Lets this client roll the global model out in the sim when a task asks.
@@ -64,7 +81,11 @@ impl SmolVlaTrainer {
 
     /// [`LocalTrainer::train`], awaiting `after_step` after every step (the browser redraws its progress and
     /// yields to the page there).
-    pub async fn train_with(&mut self, task: &RoundTask, mut after_step: impl AsyncFnMut(StepProgress)) -> Result<TrainOutput, BoxError> {
+    pub async fn train_with(
+        &mut self,
+        task: &RoundTask,
+        mut after_step: impl AsyncFnMut(StepProgress),
+    ) -> Result<TrainOutput, BoxError> {
         let rows = &self.examples.train_rows;
         if rows.is_empty() {
             return Err("this client's shard has no training episodes".into());

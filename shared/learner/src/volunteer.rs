@@ -6,8 +6,8 @@ use std::path::Path;
 use burn::tensor::Device;
 use fedvla_data::{ClientShard, ShardFileManifest};
 use fedvla_federation::{BoxError, VolunteerSetup};
-use fedvla_policy::weights::parse_safetensors;
 use fedvla_policy::SmolVlaConfig;
+use fedvla_policy::weights::parse_safetensors;
 
 use crate::examples::ShardExamples;
 use crate::trainer::SmolVlaTrainer;
@@ -38,7 +38,12 @@ pub fn volunteer_seed(name: &str) -> u64 {
 }
 
 /// The trainer of `name` on `device` (autodiff enabled), able to roll out the sim task.
-pub fn volunteer_trainer(downloads: &Downloads, name: &str, device: &Device, backend: &str) -> Result<SmolVlaTrainer, BoxError> {
+pub fn volunteer_trainer(
+    downloads: &Downloads,
+    name: &str,
+    device: &Device,
+    backend: &str,
+) -> Result<SmolVlaTrainer, BoxError> {
     let cfg = policy_config(downloads.setup)?;
     let mut weights = parse_safetensors(downloads.frozen, Path::new("frozen weights"))?;
     weights.extend(parse_safetensors(downloads.global, Path::new("global model"))?);

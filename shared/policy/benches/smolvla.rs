@@ -35,7 +35,11 @@ fn main() {
                 })
                 .collect();
             let step = median(times);
-            println!("{name:<6} ({params} params) train step  batch {b:>3}: {:>8.1} ms  {:>8.1} samples/s", step * 1e3, b as f64 / step);
+            println!(
+                "{name:<6} ({params} params) train step  batch {b:>3}: {:>8.1} ms  {:>8.1} samples/s",
+                step * 1e3,
+                b as f64 / step
+            );
         }
         let device = Device::flex();
         let store = ParamStore::upload(weights.iter(), &device, false);

@@ -36,7 +36,11 @@ impl Batch {
         let mut uniform = |n: usize| (0..n).map(|_| rng.random::<f32>()).collect::<Vec<f32>>();
         let (t, state_dim, action_dim) = (cfg.chunk_size, cfg.state_dim(), cfg.action_dim());
         Self {
-            images: cfg.camera_keys().iter().map(|_| HostTensor::new(vec![b, 3, h, w], uniform(b * 3 * h * w))).collect(),
+            images: cfg
+                .camera_keys()
+                .iter()
+                .map(|_| HostTensor::new(vec![b, 3, h, w], uniform(b * 3 * h * w)))
+                .collect(),
             lang_tokens: (0..b * 6).map(|i| 7 + (i % 6) as i64).collect(),
             lang_mask: vec![true; b * 6],
             lang_len: 6,
@@ -143,10 +147,13 @@ pub fn att_2d_mask(pad: &[bool], ar: &[bool], batch: usize, len: usize) -> Vec<b
     let mut out = Vec::with_capacity(batch * len * len);
     for b in 0..batch {
         let (pad, ar) = (&pad[b * len..(b + 1) * len], &ar[b * len..(b + 1) * len]);
-        let cum: Vec<u32> = ar.iter().scan(0u32, |s, &a| {
-            *s += a as u32;
-            Some(*s)
-        }).collect();
+        let cum: Vec<u32> = ar
+            .iter()
+            .scan(0u32, |s, &a| {
+                *s += a as u32;
+                Some(*s)
+            })
+            .collect();
         for i in 0..len {
             for j in 0..len {
                 out.push(cum[j] <= cum[i] && pad[i] && pad[j]);
@@ -170,7 +177,13 @@ pub fn position_ids(pad: &[bool], batch: usize, len: usize) -> Vec<i64> {
 }
 
 /// Copies the sub-block `rows × cols` out of a row-major `[B, L, L]` mask.
-pub fn mask_block(mask: &[bool], batch: usize, len: usize, rows: std::ops::Range<usize>, cols: std::ops::Range<usize>) -> Vec<bool> {
+pub fn mask_block(
+    mask: &[bool],
+    batch: usize,
+    len: usize,
+    rows: std::ops::Range<usize>,
+    cols: std::ops::Range<usize>,
+) -> Vec<bool> {
     let mut out = Vec::with_capacity(batch * rows.len() * cols.len());
     for b in 0..batch {
         for i in rows.clone() {
@@ -222,7 +235,10 @@ impl Prepared {
             .zip(&cams)
             .map(|(img, key)| {
                 if img.shape.len() != 4 || img.shape[0] != b || img.shape[1] != 3 {
-                    return Err(PolicyError::Input(format!("{key} has shape {:?}, expected [{b}, 3, H, W]", img.shape)));
+                    return Err(PolicyError::Input(format!(
+                        "{key} has shape {:?}, expected [{b}, 3, H, W]",
+                        img.shape
+                    )));
                 }
                 Ok(prepare_image(img, tw, th).to_tensor::<4>(device))
             })

@@ -221,9 +221,9 @@ impl SmolVlaConfig {
             "base" => Ok(Self::base()),
             "small" => Ok(Self::small()),
             "tiny" => Ok(Self::tiny()),
-            other => Err(PolicyError::Config(format!(
-                "unknown model size {other:?}: expected one of base, small, tiny"
-            ))),
+            other => {
+                Err(PolicyError::Config(format!("unknown model size {other:?}: expected one of base, small, tiny")))
+            }
         }
     }
 
@@ -279,17 +279,14 @@ impl SmolVlaConfig {
         let (w, h) = self.resize_imgs_with_padding;
         let state = self.state_dim();
         let action = self.action_dim();
-        self.input_features = std::iter::once(Feature {
-            name: "observation.state".into(),
-            kind: "STATE".into(),
-            shape: vec![state],
-        })
-        .chain(names.iter().map(|n| Feature {
-            name: format!("observation.images.{n}"),
-            kind: "VISUAL".into(),
-            shape: vec![3, h, w],
-        }))
-        .collect();
+        self.input_features =
+            std::iter::once(Feature { name: "observation.state".into(), kind: "STATE".into(), shape: vec![state] })
+                .chain(names.iter().map(|n| Feature {
+                    name: format!("observation.images.{n}"),
+                    kind: "VISUAL".into(),
+                    shape: vec![3, h, w],
+                }))
+                .collect();
         self.output_features[0].shape = vec![action];
         self
     }
@@ -377,9 +374,8 @@ impl SmolVlaConfig {
     /// Every tensor of the checkpoint, in LeRobot's module order.
     pub fn param_specs(&self) -> Vec<ParamSpec> {
         let mut specs = Vec::new();
-        let mut add = |name: String, shape: Vec<usize>, trainable: bool| {
-            specs.push(ParamSpec { name, shape, trainable })
-        };
+        let mut add =
+            |name: String, shape: Vec<usize>, trainable: bool| specs.push(ParamSpec { name, shape, trainable });
         let v = &self.vlm.vision_config;
         let t = &self.vlm.text_config;
         let e = self.expert();
@@ -460,9 +456,7 @@ impl SmolVlaConfig {
 
     /// Reads a LeRobot policy `config.json` plus the backbone config it points to.
     pub fn from_lerobot_json(policy: &Value, vlm: VlmConfig) -> Result<Self, PolicyError> {
-        let obj = policy
-            .as_object()
-            .ok_or_else(|| PolicyError::Config("config.json is not a JSON object".into()))?;
+        let obj = policy.as_object().ok_or_else(|| PolicyError::Config("config.json is not a JSON object".into()))?;
         if let Some(t) = obj.get("type").and_then(Value::as_str)
             && t != "smolvla"
         {
@@ -506,7 +500,9 @@ impl SmolVlaConfig {
             if let Some(v) = obj.get(k).and_then(Value::as_str)
                 && v != expected
             {
-                return Err(PolicyError::Config(format!("config.json: {k} {v:?} is not supported (only {expected:?})")));
+                return Err(PolicyError::Config(format!(
+                    "config.json: {k} {v:?} is not supported (only {expected:?})"
+                )));
             }
         }
         let num_vlm_layers = uint("num_vlm_layers")?;
@@ -683,8 +679,14 @@ mod tests {
 
     #[test]
     fn expert_sizes_follow_lerobot_rounding() {
-        assert_eq!(SmolVlaConfig::base().expert(), ExpertDims { hidden_size: 720, intermediate_size: 2048, num_layers: 16 });
-        assert_eq!(SmolVlaConfig::tiny().expert(), ExpertDims { hidden_size: 72, intermediate_size: 256, num_layers: 4 });
+        assert_eq!(
+            SmolVlaConfig::base().expert(),
+            ExpertDims { hidden_size: 720, intermediate_size: 2048, num_layers: 16 }
+        );
+        assert_eq!(
+            SmolVlaConfig::tiny().expert(),
+            ExpertDims { hidden_size: 72, intermediate_size: 256, num_layers: 4 }
+        );
     }
 
     #[test]

@@ -18,7 +18,10 @@ pub struct Linear {
 
 impl Linear {
     pub fn load(store: &ParamStore, prefix: &str, bias: bool) -> Self {
-        Self::from_weight(store.get::<2>(&format!("{prefix}.weight")), bias.then(|| store.get::<1>(&format!("{prefix}.bias"))))
+        Self::from_weight(
+            store.get::<2>(&format!("{prefix}.weight")),
+            bias.then(|| store.get::<1>(&format!("{prefix}.bias"))),
+        )
     }
 
     pub fn from_weight(weight: Tensor<2>, bias: Option<Tensor<1>>) -> Self {
@@ -165,7 +168,14 @@ pub struct DecoderLayer {
 }
 
 impl DecoderLayer {
-    pub fn load(store: &ParamStore, prefix: &str, eps: f64, num_heads: usize, num_kv_heads: usize, head_dim: usize) -> Self {
+    pub fn load(
+        store: &ParamStore,
+        prefix: &str,
+        eps: f64,
+        num_heads: usize,
+        num_kv_heads: usize,
+        head_dim: usize,
+    ) -> Self {
         let lin = |name: &str| Linear::load(store, &format!("{prefix}.{name}"), false);
         Self {
             input_layernorm: RmsNorm::load(store, &format!("{prefix}.input_layernorm"), eps),

@@ -26,7 +26,7 @@ pub use config::{ParamSpec, SmolVlaConfig};
 pub use error::PolicyError;
 pub use normalize::{FeatureStats, NormStats};
 pub use policy_dir::PolicyDir;
-pub use tokenizer::{Tokenizer, WordTokenizer};
 pub use smolvla::SmolVla;
+pub use tokenizer::{Tokenizer, WordTokenizer};
 pub use train::{CosineWarmup, StepReport, Trainer};
 pub use weights::{HostTensor, WeightMap};

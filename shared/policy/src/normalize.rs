@@ -22,7 +22,10 @@ pub struct FeatureStats {
 
 impl FeatureStats {
     pub fn normalize(&self, x: &[f32]) -> Vec<f32> {
-        x.iter().enumerate().map(|(i, v)| (v - self.mean[i % self.mean.len()]) / (self.std[i % self.std.len()] + NORM_EPS)).collect()
+        x.iter()
+            .enumerate()
+            .map(|(i, v)| (v - self.mean[i % self.mean.len()]) / (self.std[i % self.std.len()] + NORM_EPS))
+            .collect()
     }
 
     pub fn unnormalize(&self, y: &[f32]) -> Vec<f32> {
@@ -71,7 +74,8 @@ impl NormStats {
             return Ok(None);
         }
         let text = std::fs::read_to_string(&path).map_err(|e| PolicyError::io(&path, e))?;
-        let json: Value = serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.clone(), source: e })?;
+        let json: Value =
+            serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.clone(), source: e })?;
         let steps = json.get("steps").and_then(Value::as_array).cloned().unwrap_or_default();
         let state_file = steps
             .iter()

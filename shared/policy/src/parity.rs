@@ -54,14 +54,19 @@ impl AnyTensor {
 /// Reads every tensor of a safetensors file whatever its dtype.
 pub fn read_any(path: &Path) -> Result<BTreeMap<String, AnyTensor>, PolicyError> {
     let bytes = std::fs::read(path).map_err(|e| PolicyError::io(path, e))?;
-    let st = SafeTensors::deserialize(&bytes).map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
+    let st = SafeTensors::deserialize(&bytes)
+        .map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
     let mut out = BTreeMap::new();
     for (key, view) in st.tensors() {
         let d = view.data();
         let values: Vec<f64> = match view.dtype() {
             Dtype::BOOL | Dtype::U8 => d.iter().map(|&b| b as f64).collect(),
-            Dtype::I64 => d.chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().expect("8 bytes")) as f64).collect(),
-            Dtype::I32 => d.chunks_exact(4).map(|b| i32::from_le_bytes(b.try_into().expect("4 bytes")) as f64).collect(),
+            Dtype::I64 => {
+                d.chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().expect("8 bytes")) as f64).collect()
+            }
+            Dtype::I32 => {
+                d.chunks_exact(4).map(|b| i32::from_le_bytes(b.try_into().expect("4 bytes")) as f64).collect()
+            }
             Dtype::F64 => d.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes"))).collect(),
             other => crate::weights::decode_floats(other, d)
                 .ok_or_else(|| PolicyError::Dtype { path: path.into(), key: key.clone(), dtype: format!("{other:?}") })?
@@ -139,7 +144,12 @@ pub fn run(dir: &Path, device: &Device, tolerance: f64) -> Result<ParityReport, 
     let mut rows = Vec::new();
     for (name, exp) in &expected {
         let row = match actual.get(name) {
-            None => ParityRow { name: name.clone(), shape: exp.shape.clone(), max_abs_diff: None, note: "not recomputed".into() },
+            None => ParityRow {
+                name: name.clone(),
+                shape: exp.shape.clone(),
+                max_abs_diff: None,
+                note: "not recomputed".into(),
+            },
             Some(act) if act.shape != exp.shape => ParityRow {
                 name: name.clone(),
                 shape: exp.shape.clone(),
@@ -148,8 +158,18 @@ pub fn run(dir: &Path, device: &Device, tolerance: f64) -> Result<ParityReport, 
             },
             Some(act) => {
                 // NaN anywhere is a failure, not a difference `f64::max` would skip.
-                let diff = exp.values.iter().zip(&act.values).map(|(a, b)| (a - b).abs()).fold(0.0, |m, d| if d.is_nan() { f64::INFINITY } else { m.max(d) });
-                ParityRow { name: name.clone(), shape: exp.shape.clone(), max_abs_diff: Some(diff), note: String::new() }
+                let diff = exp
+                    .values
+                    .iter()
+                    .zip(&act.values)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, |m, d| if d.is_nan() { f64::INFINITY } else { m.max(d) });
+                ParityRow {
+                    name: name.clone(),
+                    shape: exp.shape.clone(),
+                    max_abs_diff: Some(diff),
+                    note: String::new(),
+                }
             }
         };
         rows.push(row);
@@ -187,7 +207,10 @@ fn recompute(
     let p = cfg.vlm.vision_config.patch_size;
     for (key, img) in cams.iter().zip(&obs.images) {
         let hidden = model.vlm.vision.forward(img.clone());
-        out.insert(format!("vision.{key}.connector_out"), AnyTensor::from_tensor(model.vlm.connector.forward(hidden.clone())));
+        out.insert(
+            format!("vision.{key}.connector_out"),
+            AnyTensor::from_tensor(model.vlm.connector.forward(hidden.clone())),
+        );
         out.insert(format!("vision.{key}.last_hidden_state"), AnyTensor::from_tensor(hidden));
         let ids = model.vlm.vision.position_ids(th / p, tw / p);
         let n = ids.len();
@@ -222,12 +245,18 @@ fn recompute(
             ar_full.extend_from_slice(&ar[n * lp..(n + 1) * lp]);
             ar_full.extend(std::iter::repeat_n(true, t));
         }
-        out.insert("fm.att_2d_masks".into(), AnyTensor::bools(vec![b, l, l], &crate::batch::att_2d_mask(&pad, &ar_full, b, l)));
+        out.insert(
+            "fm.att_2d_masks".into(),
+            AnyTensor::bools(vec![b, l, l], &crate::batch::att_2d_mask(&pad, &ar_full, b, l)),
+        );
         out.insert("fm.position_ids".into(), AnyTensor::ints(vec![b, l], &crate::batch::position_ids(&pad, b, l)));
         let de = cfg.expert().hidden_size;
         out.insert(
             "fm.time_emb".into(),
-            AnyTensor { shape: vec![b, de], values: time_embedding(&time, de, cfg.min_period, cfg.max_period).into_iter().map(f64::from).collect() },
+            AnyTensor {
+                shape: vec![b, de],
+                values: time_embedding(&time, de, cfg.min_period, cfg.max_period).into_iter().map(f64::from).collect(),
+            },
         );
         if let Some(first) = trace.vlm_layer_inputs.first() {
             out.insert("fm.prefix_embs".into(), AnyTensor::from_tensor(first.clone()));
@@ -235,7 +264,10 @@ fn recompute(
         if let Some(first) = trace.expert_layer_inputs.first() {
             out.insert("fm.suffix_embs".into(), AnyTensor::from_tensor(first.clone()));
         }
-        out.insert("fm.vlm_layer_inputs".into(), AnyTensor::stack(trace.vlm_layer_inputs.into_iter().map(AnyTensor::from_tensor).collect()));
+        out.insert(
+            "fm.vlm_layer_inputs".into(),
+            AnyTensor::stack(trace.vlm_layer_inputs.into_iter().map(AnyTensor::from_tensor).collect()),
+        );
         out.insert(
             "fm.expert_layer_inputs".into(),
             AnyTensor::stack(trace.expert_layer_inputs.into_iter().map(AnyTensor::from_tensor).collect()),
@@ -257,11 +289,15 @@ fn recompute(
         let before = trainer.trainable_weights();
         let (report, grads) = trainer.train_step_with(batch, host(noise).to_tensor(device), &time, cfg.optimizer_lr)?;
         let clip = (cfg.optimizer_grad_clip_norm / (report.grad_norm as f64 + 1e-6)).min(1.0);
-        out.insert("grad_norm_total_preclip".into(), AnyTensor { shape: vec![], values: vec![report.grad_norm as f64] });
+        out.insert(
+            "grad_norm_total_preclip".into(),
+            AnyTensor { shape: vec![], values: vec![report.grad_norm as f64] },
+        );
         let after = trainer.trainable_weights();
         for (name, g) in &grads {
             out.insert(format!("grad.{name}"), AnyTensor::from_host(g));
-            let clipped: Vec<f64> = g.data.iter().map(|&v| if clip < 1.0 { (v as f64) * clip } else { v as f64 }).collect();
+            let clipped: Vec<f64> =
+                g.data.iter().map(|&v| if clip < 1.0 { (v as f64) * clip } else { v as f64 }).collect();
             out.insert(format!("grad_clipped.{name}"), AnyTensor { shape: g.shape.clone(), values: clipped });
         }
         for (name, w) in after.iter().chain(before.iter().filter(|(k, _)| !after.contains_key(*k))) {
@@ -280,14 +316,22 @@ fn recompute(
         out.insert("sample.prefix_position_ids".into(), AnyTensor::ints(vec![b, lp], &prefix.positions));
         out.insert("sample.denoise_att_2d_masks".into(), AnyTensor::bools(vec![b, t, lp + t], &layout.joint_mask));
         out.insert("sample.denoise_position_ids".into(), AnyTensor::ints(vec![b, t], &layout.positions));
-        let kv_layout = |ts: &[Tensor<4>]| AnyTensor::stack(ts.iter().map(|k| AnyTensor::from_tensor(k.clone().swap_dims(1, 2))).collect());
+        let kv_layout = |ts: &[Tensor<4>]| {
+            AnyTensor::stack(ts.iter().map(|k| AnyTensor::from_tensor(k.clone().swap_dims(1, 2))).collect())
+        };
         out.insert("sample.prefix_kv.keys".into(), kv_layout(&prefix.kv.keys));
         out.insert("sample.prefix_kv.values".into(), kv_layout(&prefix.kv.values));
-        out.insert("sample.time".into(), AnyTensor { shape: vec![steps.len()], values: steps.iter().map(|s| s.time as f64).collect() });
+        out.insert(
+            "sample.time".into(),
+            AnyTensor { shape: vec![steps.len()], values: steps.iter().map(|s| s.time as f64).collect() },
+        );
         let mut xs: Vec<AnyTensor> = steps.iter().map(|s| AnyTensor::from_tensor(s.x.clone())).collect();
         xs.push(AnyTensor::from_tensor(actions.clone()));
         out.insert("sample.x_t".into(), AnyTensor::stack(xs));
-        out.insert("sample.v_t".into(), AnyTensor::stack(steps.into_iter().map(|s| AnyTensor::from_tensor(s.v)).collect()));
+        out.insert(
+            "sample.v_t".into(),
+            AnyTensor::stack(steps.into_iter().map(|s| AnyTensor::from_tensor(s.v)).collect()),
+        );
         let a = cfg.action_dim();
         let chunk = HostTensor::from_tensor(actions.clone().narrow(2, 0, a));
         out.insert("sample.actions".into(), AnyTensor::from_tensor(actions));

@@ -89,7 +89,13 @@ pub enum Backbone<'a> {
 
 /// Writes a LeRobot-loadable policy directory. Every file goes through a temporary name and a
 /// rename, so an interrupted export never leaves a half-written checkpoint behind.
-pub fn export(dir: &Path, cfg: &SmolVlaConfig, weights: &WeightMap, stats: &NormStats, backbone: Backbone<'_>) -> Result<(), PolicyError> {
+pub fn export(
+    dir: &Path,
+    cfg: &SmolVlaConfig,
+    weights: &WeightMap,
+    stats: &NormStats,
+    backbone: Backbone<'_>,
+) -> Result<(), PolicyError> {
     check_keys(&cfg.param_specs(), weights, "export")?;
     std::fs::create_dir_all(dir).map_err(|e| PolicyError::io(dir, e))?;
     let mut cfg = cfg.clone();
@@ -125,7 +131,8 @@ pub fn export(dir: &Path, cfg: &SmolVlaConfig, weights: &WeightMap, stats: &Norm
 
 fn write_json(path: &Path, value: &Value) -> Result<(), PolicyError> {
     let tmp = path.with_extension("json.partial");
-    std::fs::write(&tmp, serde_json::to_string_pretty(value).expect("serialisable JSON")).map_err(|e| PolicyError::io(&tmp, e))?;
+    std::fs::write(&tmp, serde_json::to_string_pretty(value).expect("serialisable JSON"))
+        .map_err(|e| PolicyError::io(&tmp, e))?;
     std::fs::rename(&tmp, path).map_err(|e| PolicyError::io(path, e))
 }
 

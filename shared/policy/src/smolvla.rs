@@ -160,14 +160,22 @@ impl SmolVla {
         let [b, t, _] = x_t.dims();
         let de = self.cfg.expert().hidden_size;
         let temb = time_embedding(time, de, self.cfg.min_period, self.cfg.max_period);
-        let temb = Tensor::<2>::from_data(TensorData::new(temb, [b, de]), &device).unsqueeze_dim::<3>(1).expand([b, t, de]);
+        let temb =
+            Tensor::<2>::from_data(TensorData::new(temb, [b, de]), &device).unsqueeze_dim::<3>(1).expand([b, t, de]);
         let action = self.expert.action_in_proj.forward(x_t);
         let h = self.expert.action_time_mlp_in.forward(Tensor::cat(vec![action, temb], 2));
         self.expert.action_time_mlp_out.forward(silu(h))
     }
 
     /// Predicted velocity `v_t` for noisy actions `x_t` at times `time`: `[B, T, max_action_dim]`.
-    pub fn velocity(&self, prefix: &Prefix, layout: &SuffixLayout, x_t: Tensor<3>, time: &[f32], trace: Option<&mut Trace>) -> Tensor<3> {
+    pub fn velocity(
+        &self,
+        prefix: &Prefix,
+        layout: &SuffixLayout,
+        x_t: Tensor<3>,
+        time: &[f32],
+        trace: Option<&mut Trace>,
+    ) -> Tensor<3> {
         let suffix = self.embed_suffix(x_t, time);
         let out = self.expert.forward(suffix, &prefix.kv, layout, trace);
         self.expert.action_out_proj.forward(out)
@@ -208,7 +216,12 @@ impl SmolVla {
 
     /// Euler integration from `noise` (t = 1) to t = 0 in `num_steps` steps; returns `[B, T,
     /// max_action_dim]` normalised actions and records every step when `steps` is given.
-    pub fn sample_actions(&self, obs: &Prepared, noise: Tensor<3>, mut steps: Option<&mut Vec<EulerStep>>) -> Tensor<3> {
+    pub fn sample_actions(
+        &self,
+        obs: &Prepared,
+        noise: Tensor<3>,
+        mut steps: Option<&mut Vec<EulerStep>>,
+    ) -> Tensor<3> {
         let prefix = self.encode_prefix(obs, None);
         let layout = self.suffix_layout(&prefix);
         let n = self.cfg.num_steps;

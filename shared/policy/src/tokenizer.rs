@@ -19,8 +19,15 @@ pub const PAD_ID: i64 = 2;
 /// `<image>` (SmolVLA never feeds it; the backbone config names it).
 pub const IMAGE_ID: i64 = 3;
 const UNK_ID: i64 = 0;
-const SPECIAL: [&str; 7] =
-    ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<image>", "<fake_token_around_image>", "<global-img>", "<end_of_utterance>"];
+const SPECIAL: [&str; 7] = [
+    "<|endoftext|>",
+    "<|im_start|>",
+    "<|im_end|>",
+    "<image>",
+    "<fake_token_around_image>",
+    "<global-img>",
+    "<end_of_utterance>",
+];
 
 /// Word-level vocabulary: special tokens first, then words in first-seen order.
 #[derive(Debug, Clone, PartialEq)]
@@ -56,7 +63,8 @@ fn words(text: &str) -> Vec<String> {
 
 impl WordTokenizer {
     pub fn from_texts<'a>(texts: impl IntoIterator<Item = &'a str>) -> Self {
-        let mut vocab: BTreeMap<String, i64> = SPECIAL.iter().enumerate().map(|(i, s)| (s.to_string(), i as i64)).collect();
+        let mut vocab: BTreeMap<String, i64> =
+            SPECIAL.iter().enumerate().map(|(i, s)| (s.to_string(), i as i64)).collect();
         for text in texts {
             for w in words(text) {
                 let next = vocab.len() as i64;
@@ -74,7 +82,8 @@ impl WordTokenizer {
     /// them: "\n" appended, truncated to `max_length`, right-padded to the longest row
     /// (`pad_to_max = false`) or to `max_length`.
     pub fn encode_batch(&self, tasks: &[&str], max_length: usize, pad_to_max: bool) -> (Vec<i64>, Vec<bool>, usize) {
-        let rows = tasks.iter().map(|t| words(t).iter().map(|w| *self.vocab.get(w).unwrap_or(&UNK_ID)).collect()).collect();
+        let rows =
+            tasks.iter().map(|t| words(t).iter().map(|w| *self.vocab.get(w).unwrap_or(&UNK_ID)).collect()).collect();
         pad_rows(rows, max_length, pad_to_max)
     }
 
@@ -111,7 +120,8 @@ impl WordTokenizer {
     /// Reads a WordLevel `tokenizer.json` written by [`WordTokenizer::to_json`].
     pub fn read(path: &Path) -> Result<Self, PolicyError> {
         let text = std::fs::read_to_string(path).map_err(|e| PolicyError::io(path, e))?;
-        let json: Value = serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.into(), source: e })?;
+        let json: Value =
+            serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.into(), source: e })?;
         let model = &json["model"];
         if model["type"] != "WordLevel" {
             return Err(PolicyError::Tokenizer(format!(
@@ -166,7 +176,12 @@ impl Tokenizer {
     }
 
     /// `[B, L]` token ids, attention mask and L for a batch of task strings.
-    pub fn encode_batch(&self, tasks: &[&str], max_length: usize, pad_to_max: bool) -> Result<(Vec<i64>, Vec<bool>, usize), PolicyError> {
+    pub fn encode_batch(
+        &self,
+        tasks: &[&str],
+        max_length: usize,
+        pad_to_max: bool,
+    ) -> Result<(Vec<i64>, Vec<bool>, usize), PolicyError> {
         match self {
             Self::Word(w) => Ok(w.encode_batch(tasks, max_length, pad_to_max)),
             #[cfg(not(target_arch = "wasm32"))]

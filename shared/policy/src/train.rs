@@ -6,8 +6,8 @@
 use std::collections::BTreeMap;
 
 use burn::tensor::{Device, Tensor};
-use rand::rngs::StdRng;
 use rand::SeedableRng;
+use rand::rngs::StdRng;
 
 use crate::batch::{Batch, Prepared, prepare_actions};
 use crate::config::SmolVlaConfig;
@@ -59,11 +59,7 @@ impl CosineWarmup {
     pub fn lr_at(&self, step: usize) -> f64 {
         let w = self.warmup_steps as f64;
         let factor = if step < self.warmup_steps {
-            if step == 0 {
-                1.0 / (w + 1.0)
-            } else {
-                (1.0 / (w + 1.0) - 1.0) * (1.0 - step as f64 / w) + 1.0
-            }
+            if step == 0 { 1.0 / (w + 1.0) } else { (1.0 / (w + 1.0) - 1.0) * (1.0 - step as f64 / w) + 1.0 }
         } else {
             let s = step.min(self.decay_steps) as f64;
             let cosine = 0.5 * (1.0 + (std::f64::consts::PI * s / self.decay_steps as f64).cos());
@@ -102,7 +98,8 @@ impl Trainer {
         check_keys(&specs, weights, "weights")?;
         let trainable_names: std::collections::BTreeSet<&str> =
             specs.iter().filter(|s| s.trainable).map(|s| s.name.as_str()).collect();
-        let frozen = ParamStore::upload(weights.iter().filter(|(k, _)| !trainable_names.contains(k.as_str())), device, false);
+        let frozen =
+            ParamStore::upload(weights.iter().filter(|(k, _)| !trainable_names.contains(k.as_str())), device, false);
         let trainable_store =
             ParamStore::upload(weights.iter().filter(|(k, _)| trainable_names.contains(k.as_str())), device, true);
         let model = SmolVla::new(cfg, &frozen, &trainable_store);
@@ -162,7 +159,8 @@ impl Trainer {
     /// Forward pass with given noise and time (no update).
     pub fn forward(&self, batch: &Batch, noise: Tensor<3>, time: &[f32]) -> Result<FlowMatchingOutput, PolicyError> {
         let obs = Prepared::new(&self.model.cfg, batch, &self.device)?;
-        let actions = batch.actions.as_ref().ok_or_else(|| PolicyError::Input("batch has no actions to train on".into()))?;
+        let actions =
+            batch.actions.as_ref().ok_or_else(|| PolicyError::Input("batch has no actions to train on".into()))?;
         let actions = prepare_actions(&self.model.cfg, actions, &self.device);
         Ok(self.model.forward_loss(&obs, actions, noise, time, batch.action_is_pad.as_deref(), None))
     }
@@ -197,11 +195,25 @@ impl Trainer {
     }
 
     /// One training step with given noise and time; also returns the gradients before clipping.
-    pub fn train_step_with(&mut self, batch: &Batch, noise: Tensor<3>, time: &[f32], lr: f64) -> Result<(StepReport, WeightMap), PolicyError> {
+    pub fn train_step_with(
+        &mut self,
+        batch: &Batch,
+        noise: Tensor<3>,
+        time: &[f32],
+        lr: f64,
+    ) -> Result<(StepReport, WeightMap), PolicyError> {
         let (loss, grads) = self.backward(batch, noise, time)?;
         let raw_grads = grads
             .iter()
-            .map(|(k, g)| (k.clone(), HostTensor::new(self.trainable[k].1.clone(), g.to_data().convert::<f32>().try_into_vec::<f32>().expect("f32"))))
+            .map(|(k, g)| {
+                (
+                    k.clone(),
+                    HostTensor::new(
+                        self.trainable[k].1.clone(),
+                        g.to_data().convert::<f32>().try_into_vec::<f32>().expect("f32"),
+                    ),
+                )
+            })
             .collect();
         let norm_sq = squared_norm(&grads).map_or(0.0, |n| n.into_scalar::<f64>());
         let report = self.finish_step(loss.into_scalar::<f32>(), norm_sq, grads, lr)?;
@@ -209,15 +221,27 @@ impl Trainer {
     }
 
     /// The loss and the gradient of every trainable tensor that received one.
-    fn backward(&mut self, batch: &Batch, noise: Tensor<3>, time: &[f32]) -> Result<(Tensor<1>, BTreeMap<String, Tensor<1>>), PolicyError> {
+    fn backward(
+        &mut self,
+        batch: &Batch,
+        noise: Tensor<3>,
+        time: &[f32],
+    ) -> Result<(Tensor<1>, BTreeMap<String, Tensor<1>>), PolicyError> {
         let loss = self.forward(batch, noise, time)?.loss;
         let grads = loss.backward();
-        let grads = self.trainable.iter().filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g))).collect();
+        let grads =
+            self.trainable.iter().filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g))).collect();
         Ok((loss.inner(), grads))
     }
 
     /// Clips to the global norm and applies AdamW, unless the loss is not finite.
-    fn finish_step(&mut self, loss: f32, norm_sq: f64, grads: BTreeMap<String, Tensor<1>>, lr: f64) -> Result<StepReport, PolicyError> {
+    fn finish_step(
+        &mut self,
+        loss: f32,
+        norm_sq: f64,
+        grads: BTreeMap<String, Tensor<1>>,
+        lr: f64,
+    ) -> Result<StepReport, PolicyError> {
         if !loss.is_finite() {
             return Err(PolicyError::Input(format!("training loss is {loss}; refusing to apply the update")));
         }

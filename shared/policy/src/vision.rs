@@ -67,8 +67,10 @@ impl VisionTower {
         let conv: Tensor<4> = store.get(&format!("{p}.embeddings.patch_embedding.weight"));
         let [d, c, ph, pw] = conv.dims();
         // A stride = kernel convolution is a matmul over flattened (channel, row, col) patches.
-        let patch_embedding =
-            Linear::from_weight(conv.reshape([d, c * ph * pw]), Some(store.get(&format!("{p}.embeddings.patch_embedding.bias"))));
+        let patch_embedding = Linear::from_weight(
+            conv.reshape([d, c * ph * pw]),
+            Some(store.get(&format!("{p}.embeddings.patch_embedding.bias"))),
+        );
         Self {
             patch_embedding,
             position_embedding: store.get(&format!("{p}.embeddings.position_embedding.weight")),
@@ -105,10 +107,8 @@ impl VisionTower {
         let [b, c, h, w] = images.dims();
         let p = self.cfg.patch_size;
         let (rows, cols) = (h / p, w / p);
-        let patches = images
-            .reshape([b, c, rows, p, cols, p])
-            .permute([0, 2, 4, 1, 3, 5])
-            .reshape([b, rows * cols, c * p * p]);
+        let patches =
+            images.reshape([b, c, rows, p, cols, p]).permute([0, 2, 4, 1, 3, 5]).reshape([b, rows * cols, c * p * p]);
         let x = self.patch_embedding.forward(patches);
         let device = x.device();
         let ids = self.position_ids(rows, cols);

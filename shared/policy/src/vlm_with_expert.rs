@@ -11,7 +11,7 @@
 use burn::tensor::{Int, Tensor, TensorData};
 
 use crate::config::{EXPERT_PREFIX, SmolVlaConfig, TEXT_PREFIX};
-use crate::layers::{DecoderLayer, Linear, Rope, RmsNorm, attention, bool_tensor};
+use crate::layers::{DecoderLayer, Linear, RmsNorm, Rope, attention, bool_tensor};
 use crate::vision::{Connector, VisionTower};
 use crate::weights::ParamStore;
 
@@ -36,7 +36,14 @@ impl Vlm {
             layers: (0..cfg.num_vlm_layers)
                 .map(|n| {
                     let p = format!("{TEXT_PREFIX}.layers.{n}");
-                    DecoderLayer::load(store, &p, t.rms_norm_eps, t.num_attention_heads, t.num_key_value_heads, t.head_dim)
+                    DecoderLayer::load(
+                        store,
+                        &p,
+                        t.rms_norm_eps,
+                        t.num_attention_heads,
+                        t.num_key_value_heads,
+                        t.head_dim,
+                    )
                 })
                 .collect(),
             norm: RmsNorm::load(store, &format!("{TEXT_PREFIX}.norm"), t.rms_norm_eps),
@@ -181,7 +188,14 @@ impl ActionExpert {
             layers: (0..cfg.expert().num_layers)
                 .map(|n| {
                     let p = format!("{EXPERT_PREFIX}.layers.{n}");
-                    DecoderLayer::load(store, &p, t.rms_norm_eps, t.num_attention_heads, t.num_key_value_heads, t.head_dim)
+                    DecoderLayer::load(
+                        store,
+                        &p,
+                        t.rms_norm_eps,
+                        t.num_attention_heads,
+                        t.num_key_value_heads,
+                        t.head_dim,
+                    )
                 })
                 .collect(),
             self_attn: (0..cfg.expert().num_layers).map(|n| cfg.is_self_attn_layer(n)).collect(),
@@ -199,7 +213,13 @@ impl ActionExpert {
     ///
     /// # Shapes
     /// - suffix: `[B, T, De]` → `[B, T, De]`
-    pub fn forward(&self, suffix: Tensor<3>, prefix: &PrefixKv, layout: &SuffixLayout, mut trace: Option<&mut Trace>) -> Tensor<3> {
+    pub fn forward(
+        &self,
+        suffix: Tensor<3>,
+        prefix: &PrefixKv,
+        layout: &SuffixLayout,
+        mut trace: Option<&mut Trace>,
+    ) -> Tensor<3> {
         let device = suffix.device();
         let (b, lp, t) = (layout.batch, layout.prefix_len, layout.chunk);
         let hd = self.layers[0].head_dim;

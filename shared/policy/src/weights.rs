@@ -34,9 +34,8 @@ impl HostTensor {
     }
 
     pub fn to_tensor<const D: usize>(&self, device: &Device) -> Tensor<D> {
-        Tensor::<1>::from_data(TensorData::new(self.data.clone(), [self.data.len()]), device).reshape(
-            <[usize; D]>::try_from(self.shape.as_slice()).expect("tensor rank matches the requested rank"),
-        )
+        Tensor::<1>::from_data(TensorData::new(self.data.clone(), [self.data.len()]), device)
+            .reshape(<[usize; D]>::try_from(self.shape.as_slice()).expect("tensor rank matches the requested rank"))
     }
 }
 
@@ -63,8 +62,11 @@ pub fn parse_safetensors(bytes: &[u8], path: &Path) -> Result<WeightMap, PolicyE
         if NORMALIZER_PREFIXES.iter().any(|p| key.starts_with(p)) {
             continue;
         }
-        let data = decode_floats(view.dtype(), view.data())
-            .ok_or_else(|| PolicyError::Dtype { path: path.into(), key: key.clone(), dtype: format!("{:?}", view.dtype()) })?;
+        let data = decode_floats(view.dtype(), view.data()).ok_or_else(|| PolicyError::Dtype {
+            path: path.into(),
+            key: key.clone(),
+            dtype: format!("{:?}", view.dtype()),
+        })?;
         let key = match key.strip_prefix("model._orig_mod.") {
             Some(rest) => format!("model.{rest}"),
             None => key,
@@ -117,9 +119,10 @@ pub fn check_keys(specs: &[ParamSpec], weights: &WeightMap, source_name: &str) -
     for spec in specs {
         match weights.get(&spec.name) {
             None => report.push(format!("  missing key {} (expected shape {:?})", spec.name, spec.shape)),
-            Some(t) if t.shape != spec.shape => {
-                report.push(format!("  wrong shape for {}: file has {:?}, config expects {:?}", spec.name, t.shape, spec.shape))
-            }
+            Some(t) if t.shape != spec.shape => report.push(format!(
+                "  wrong shape for {}: file has {:?}, config expects {:?}",
+                spec.name, t.shape, spec.shape
+            )),
             Some(_) => {}
         }
     }
@@ -189,7 +192,8 @@ impl ParamStore {
     /// comes from `SmolVlaConfig::param_specs`, which the loader has already checked against.
     pub fn get<const D: usize>(&self, name: &str) -> Tensor<D> {
         let (flat, shape) = self.tensors.get(name).unwrap_or_else(|| panic!("parameter {name} not in store"));
-        let dims: [usize; D] = shape.as_slice().try_into().unwrap_or_else(|_| panic!("parameter {name} has rank {}", shape.len()));
+        let dims: [usize; D] =
+            shape.as_slice().try_into().unwrap_or_else(|_| panic!("parameter {name} has rank {}", shape.len()));
         flat.clone().reshape(dims)
     }
 
@@ -201,8 +205,12 @@ impl ParamStore {
     pub async fn to_host_async(&self) -> Result<WeightMap, PolicyError> {
         let mut out = WeightMap::new();
         for (k, (t, s)) in &self.tensors {
-            let data = t.to_data_async().await.map_err(|e| PolicyError::Input(format!("reading {k} from the device: {e}")))?;
-            out.insert(k.clone(), HostTensor::new(s.clone(), data.convert::<f32>().try_into_vec::<f32>().expect("f32 tensor data")));
+            let data =
+                t.to_data_async().await.map_err(|e| PolicyError::Input(format!("reading {k} from the device: {e}")))?;
+            out.insert(
+                k.clone(),
+                HostTensor::new(s.clone(), data.convert::<f32>().try_into_vec::<f32>().expect("f32 tensor data")),
+            );
         }
         Ok(out)
     }

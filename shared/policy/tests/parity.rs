@@ -40,9 +40,12 @@ fn fixture_tokenizer_reproduces_lerobot_token_ids() {
     let fixture = dir.join("smolvla-tiny-a");
     let policy = fedvla_policy::PolicyDir::load(&fixture).unwrap();
     let tokenizer = policy.tokenizer().unwrap().expect("fixture ships vlm/tokenizer.json");
-    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fixture.join("meta.json")).unwrap()).unwrap();
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixture.join("meta.json")).unwrap()).unwrap();
     let tasks: Vec<&str> = meta["tasks"].as_array().unwrap().iter().map(|t| t.as_str().unwrap()).collect();
-    let (ids, mask, len) = tokenizer.encode_batch(&tasks, policy.cfg.tokenizer_max_length, policy.cfg.pad_language_to == "max_length").unwrap();
+    let (ids, mask, len) = tokenizer
+        .encode_batch(&tasks, policy.cfg.tokenizer_max_length, policy.cfg.pad_language_to == "max_length")
+        .unwrap();
     let inputs = fedvla_policy::parity::read_any(&fixture.join("inputs.safetensors")).unwrap();
     let expected = &inputs["observation.language.tokens"];
     assert_eq!(len, expected.shape[1]);

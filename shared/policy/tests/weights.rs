@@ -109,11 +109,13 @@ fn missing_extra_and_misshaped_keys_are_each_named() {
 #[test]
 fn torch_compile_prefix_is_stripped_and_normalizer_buffers_ignored() {
     let (cfg, tensors) = tiny_checkpoint();
-    let mut renamed: Vec<_> = tensors
-        .into_iter()
-        .map(|(k, t, f)| (k.replacen("model.", "model._orig_mod.", 1), t, f))
-        .collect();
-    renamed.push(("normalize_inputs.buffer_observation_state.mean".into(), HostTensor::new(vec![6], vec![0.0; 6]), true));
+    let mut renamed: Vec<_> =
+        tensors.into_iter().map(|(k, t, f)| (k.replacen("model.", "model._orig_mod.", 1), t, f)).collect();
+    renamed.push((
+        "normalize_inputs.buffer_observation_state.mean".into(),
+        HostTensor::new(vec![6], vec![0.0; 6]),
+        true,
+    ));
     let path = std::env::temp_dir().join(format!("fedvla-compiled-{}.safetensors", std::process::id()));
     write_mixed(&path, &renamed);
     let loaded = read_safetensors(&path).unwrap();

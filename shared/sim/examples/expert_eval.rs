@@ -3,10 +3,7 @@
 use fedvla_sim::run_expert_episode;
 
 fn main() {
-    let episodes: u64 = std::env::args()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(100);
+    let episodes: u64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(100);
     let mut successes = 0;
     let mut frames = 0;
     for seed in 0..episodes {
@@ -14,10 +11,7 @@ fn main() {
         successes += u32::from(outcome.success);
         frames += outcome.frames;
         if !outcome.success {
-            println!(
-                "seed {seed}: failed, cube ended at {:?}",
-                outcome.final_cube_position
-            );
+            println!("seed {seed}: failed, cube ended at {:?}", outcome.final_cube_position);
         }
     }
     println!(

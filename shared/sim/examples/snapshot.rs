@@ -14,23 +14,11 @@ fn main() {
         let action = expert.act(&scene);
         scene.step(action);
     }
-    println!(
-        "state {:?} cube {:?} success {}",
-        scene.state(),
-        scene.cube_pose().translation,
-        scene.success()
-    );
+    println!("state {:?} cube {:?} success {}", scene.state(), scene.cube_pose().translation, scene.success());
     for camera in Camera::ALL {
         let rgb = render(&scene, camera, size, size);
         let path = format!("{out_dir}/seed{seed}_f{frames}_{}.png", camera.name());
-        image::save_buffer(
-            &path,
-            &rgb,
-            size as u32,
-            size as u32,
-            image::ColorType::Rgb8,
-        )
-        .expect("write png");
+        image::save_buffer(&path, &rgb, size as u32, size as u32, image::ColorType::Rgb8).expect("write png");
         println!("{path}");
     }
 }

@@ -4,10 +4,7 @@ use fedvla_sim::{Camera, Expert, Scene, render};
 use std::time::Instant;
 
 fn main() {
-    let size: usize = std::env::args()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(256);
+    let size: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(256);
     let mut scene = Scene::new(0);
     let mut expert = Expert::new(&scene);
     let started = Instant::now();
@@ -18,10 +15,7 @@ fn main() {
         steps += 1;
     }
     let seconds = started.elapsed().as_secs_f64();
-    println!(
-        "sim + expert: {:.0} control steps/s ({steps} steps, 8 physics substeps each)",
-        steps as f64 / seconds
-    );
+    println!("sim + expert: {:.0} control steps/s ({steps} steps, 8 physics substeps each)", steps as f64 / seconds);
 
     // Render the settled scene and a mid-grasp one, so the wrist camera sees the bowl close up.
     let mut mid = Scene::new(0);

@@ -3,10 +3,7 @@
 use fedvla_sim::{Expert, Scene};
 
 fn main() {
-    let seed: u64 = std::env::args()
-        .nth(1)
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
+    let seed: u64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
     let mut scene = Scene::new(seed);
     let mut expert = Expert::new(&scene);
     println!("{:?}", scene.layout());

@@ -15,14 +15,8 @@ pub const JOINT_COUNT: usize = 6;
 /// Number of links: base, shoulder, upper arm, lower arm, wrist, gripper (fixed jaw), moving jaw.
 pub const LINK_COUNT: usize = JOINT_COUNT + 1;
 /// Joint names in LeRobot's order for SO-100 (`observation.state` / `action` names).
-pub const JOINT_NAMES: [&str; JOINT_COUNT] = [
-    "shoulder_pan",
-    "shoulder_lift",
-    "elbow_flex",
-    "wrist_flex",
-    "wrist_roll",
-    "gripper",
-];
+pub const JOINT_NAMES: [&str; JOINT_COUNT] =
+    ["shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper"];
 /// Index of the gripper in state/action vectors.
 pub const GRIPPER: usize = 5;
 /// Index of the gripper (fixed jaw) link, which carries the wrist camera and the grasp point.
@@ -115,41 +109,13 @@ pub fn joints() -> [JointSpec; JOINT_COUNT] {
 
 /// Link masses and centres of mass from the published model.
 pub const LINKS: [LinkSpec; LINK_COUNT] = [
-    LinkSpec {
-        name: "base",
-        mass: 1.0,
-        center_of_mass: Vec3::ZERO,
-    },
-    LinkSpec {
-        name: "shoulder",
-        mass: 0.119226,
-        center_of_mass: Vec3::new(-9.07886e-05, 0.0590972, 0.031089),
-    },
-    LinkSpec {
-        name: "upper_arm",
-        mass: 0.162409,
-        center_of_mass: Vec3::new(-1.72052e-05, 0.0701802, 0.00310545),
-    },
-    LinkSpec {
-        name: "lower_arm",
-        mass: 0.147968,
-        center_of_mass: Vec3::new(-0.00339604, 0.00137796, 0.0768007),
-    },
-    LinkSpec {
-        name: "wrist",
-        mass: 0.0661321,
-        center_of_mass: Vec3::new(-0.00852653, -0.0352279, -2.34622e-05),
-    },
-    LinkSpec {
-        name: "gripper",
-        mass: 0.0929859,
-        center_of_mass: Vec3::new(0.00552377, -0.0280167, 0.000483583),
-    },
-    LinkSpec {
-        name: "jaw",
-        mass: 0.0202444,
-        center_of_mass: Vec3::new(-0.00161745, -0.0303473, 0.000449646),
-    },
+    LinkSpec { name: "base", mass: 1.0, center_of_mass: Vec3::ZERO },
+    LinkSpec { name: "shoulder", mass: 0.119226, center_of_mass: Vec3::new(-9.07886e-05, 0.0590972, 0.031089) },
+    LinkSpec { name: "upper_arm", mass: 0.162409, center_of_mass: Vec3::new(-1.72052e-05, 0.0701802, 0.00310545) },
+    LinkSpec { name: "lower_arm", mass: 0.147968, center_of_mass: Vec3::new(-0.00339604, 0.00137796, 0.0768007) },
+    LinkSpec { name: "wrist", mass: 0.0661321, center_of_mass: Vec3::new(-0.00852653, -0.0352279, -2.34622e-05) },
+    LinkSpec { name: "gripper", mass: 0.0929859, center_of_mass: Vec3::new(0.00552377, -0.0280167, 0.000483583) },
+    LinkSpec { name: "jaw", mass: 0.0202444, center_of_mass: Vec3::new(-0.00161745, -0.0303473, 0.000449646) },
 ];
 
 /// Inner face of the fixed jaw's finger, along the gripper frame's x axis, metres.
@@ -168,10 +134,7 @@ pub fn grasp_point(half: f32) -> Vec3 {
 pub fn forward_kinematics(base: Pose, q: &[f32; JOINT_COUNT]) -> [Pose; LINK_COUNT] {
     let mut poses = [base; LINK_COUNT];
     for (i, joint) in joints().iter().enumerate() {
-        let local = Pose::from_parts(
-            joint.origin,
-            joint.orientation * Rot3::from_axis_angle(joint.axis, q[i]),
-        );
+        let local = Pose::from_parts(joint.origin, joint.orientation * Rot3::from_axis_angle(joint.axis, q[i]));
         poses[i + 1] = poses[i] * local;
     }
     poses
@@ -191,19 +154,11 @@ pub struct Payload {
 /// Torque each joint's servo must exert about its axis to hold everything outboard of that
 /// joint (the links of [`LINKS`] and `payload`) still against `gravity` (m/s², world frame),
 /// N·m, positive along the joint axis; `links` are the link poses from [`forward_kinematics`].
-pub fn gravity_torques(
-    links: &[Pose; LINK_COUNT],
-    payload: Option<Payload>,
-    gravity: Vec3,
-) -> [f32; JOINT_COUNT] {
+pub fn gravity_torques(links: &[Pose; LINK_COUNT], payload: Option<Payload>, gravity: Vec3) -> [f32; JOINT_COUNT] {
     let specs = joints();
     let weights: [(usize, f32, Vec3); LINK_COUNT] = std::array::from_fn(|link| {
         let spec = LINKS[link];
-        (
-            link,
-            spec.mass,
-            links[link].transform_point(spec.center_of_mass),
-        )
+        (link, spec.mass, links[link].transform_point(spec.center_of_mass))
     });
     let carried = payload.map(|p| (p.link, p.mass, p.position));
     std::array::from_fn(|joint| {
@@ -259,23 +214,13 @@ pub fn link_parts() -> [Vec<Part>; LINK_COUNT] {
     [
         // Base: a plate under the pan servo.
         vec![
-            Part::cuboid(
-                Vec3::new(0.0, -0.0452, 0.006),
-                Vec3::new(0.045, 0.045, 0.006),
-                ORANGE,
-            ),
-            servo(
-                Vec3::new(0.0, -0.0452, 0.012 + 0.0175),
-                Vec3::new(0.0175, 0.0225, 0.0175),
-            ),
+            Part::cuboid(Vec3::new(0.0, -0.0452, 0.006), Vec3::new(0.045, 0.045, 0.006), ORANGE),
+            servo(Vec3::new(0.0, -0.0452, 0.012 + 0.0175), Vec3::new(0.0175, 0.0225, 0.0175)),
         ],
         // Shoulder: the pan bracket rising to the shoulder-lift servo (local y is up).
         vec![
             Part::segment(Vec3::new(0.0, 0.03, 0.0), j[1].origin, 0.02, 0.014, ORANGE),
-            servo(
-                j[1].origin - Vec3::new(0.0, 0.0, 0.004),
-                Vec3::new(0.0225, 0.0175, 0.012),
-            ),
+            servo(j[1].origin - Vec3::new(0.0, 0.0, 0.004), Vec3::new(0.0225, 0.0175, 0.012)),
         ],
         // Upper arm, with the elbow servo at its far end.
         vec![
@@ -285,10 +230,7 @@ pub fn link_parts() -> [Vec<Part>; LINK_COUNT] {
         // Lower arm, with the wrist-flex servo at its far end.
         vec![
             Part::segment(Vec3::ZERO, j[3].origin, 0.015, 0.011, ORANGE),
-            servo(
-                j[3].origin - Vec3::new(0.0, 0.0, 0.01),
-                Vec3::new(0.0225, 0.0175, 0.012),
-            ),
+            servo(j[3].origin - Vec3::new(0.0, 0.0, 0.01), Vec3::new(0.0225, 0.0175, 0.012)),
         ],
         // Wrist: the bracket holding the wrist-roll servo.
         vec![
@@ -297,29 +239,12 @@ pub fn link_parts() -> [Vec<Part>; LINK_COUNT] {
         ],
         // Gripper: the jaw servo and the fixed finger, inner face at FIXED_FINGER_FACE_X.
         vec![
-            servo(
-                Vec3::new(-0.002, -0.03, 0.0),
-                Vec3::new(0.018, 0.016, 0.016),
-            ),
-            Part::cuboid(
-                Vec3::new(0.008, -0.05, 0.0),
-                Vec3::new(0.008, 0.006, 0.009),
-                ORANGE,
-            ),
-            Part::cuboid(
-                Vec3::new(FIXED_FINGER_FACE_X + 0.004, -0.0805, 0.0),
-                Vec3::new(0.004, 0.0255, 0.009),
-                ORANGE,
-            ),
+            servo(Vec3::new(-0.002, -0.03, 0.0), Vec3::new(0.018, 0.016, 0.016)),
+            Part::cuboid(Vec3::new(0.008, -0.05, 0.0), Vec3::new(0.008, 0.006, 0.009), ORANGE),
+            Part::cuboid(Vec3::new(FIXED_FINGER_FACE_X + 0.004, -0.0805, 0.0), Vec3::new(0.004, 0.0255, 0.009), ORANGE),
         ],
         // Moving jaw, in its own frame (x mirrored): a finger swinging about the jaw axis.
-        vec![Part::segment(
-            Vec3::new(-0.008, -0.012, 0.0),
-            Vec3::new(-0.0138, -0.082, 0.0),
-            0.003,
-            0.009,
-            ORANGE,
-        )],
+        vec![Part::segment(Vec3::new(-0.008, -0.012, 0.0), Vec3::new(-0.0138, -0.082, 0.0), 0.003, 0.009, ORANGE)],
     ]
 }
 
@@ -333,17 +258,9 @@ mod tests {
         let q = [0.3, -1.2, 1.4, 0.5, -0.7, 0.9];
         let back = from_robot_units(&to_robot_units(&q));
         for i in 0..JOINT_COUNT {
-            assert!(
-                (back[i] - q[i]).abs() < 1e-5,
-                "joint {i}: {} vs {}",
-                back[i],
-                q[i]
-            );
+            assert!((back[i] - q[i]).abs() < 1e-5, "joint {i}: {} vs {}", back[i], q[i]);
         }
-        assert_eq!(
-            to_robot_units(&[0.0, 0.0, 0.0, 0.0, 0.0, -0.2])[GRIPPER],
-            0.0
-        );
+        assert_eq!(to_robot_units(&[0.0, 0.0, 0.0, 0.0, 0.0, -0.2])[GRIPPER], 0.0);
     }
 
     #[test]
@@ -379,10 +296,7 @@ mod tests {
         let poses = forward_kinematics(Pose::IDENTITY, &home);
         let shoulder = poses[2].translation;
         let gripper = poses[GRIPPER_LINK];
-        assert!(
-            shoulder.y - gripper.translation.y > 0.15,
-            "shoulder {shoulder:?} gripper {gripper:?}"
-        );
+        assert!(shoulder.y - gripper.translation.y > 0.15, "shoulder {shoulder:?} gripper {gripper:?}");
         let fingers = gripper.transform_vector(-Vec3::Y);
         assert!(fingers.z < -0.99, "fingers point along {fingers:?}");
     }

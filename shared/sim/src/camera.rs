@@ -29,12 +29,7 @@ impl CameraView {
     fn looking_at(eye: Vec3, target: Vec3, up_hint: Vec3, fov_y: f32) -> Self {
         let forward = (target - eye).normalize();
         let up = (up_hint - forward * up_hint.dot(forward)).normalize();
-        Self {
-            eye,
-            forward,
-            up,
-            fov_y,
-        }
+        Self { eye, forward, up, fov_y }
     }
 
     /// Unit vector pointing right in the image.

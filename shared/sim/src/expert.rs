@@ -112,8 +112,7 @@ impl Expert {
                 let smooth = t * t * (3.0 - 2.0 * t);
                 return Waypoint {
                     position: from.position.lerp(to.position, smooth),
-                    closing_yaw: from.closing_yaw
-                        + wrap(to.closing_yaw - from.closing_yaw) * smooth,
+                    closing_yaw: from.closing_yaw + wrap(to.closing_yaw - from.closing_yaw) * smooth,
                     gripper: from.gripper + (to.gripper - from.gripper) * t,
                     frames: 0,
                 };
@@ -153,33 +152,13 @@ fn plan(scene: &Scene, joints: &[f32; JOINT_COUNT], grasp_point: Vec3) -> Vec<Wa
         gripper: scene.state()[GRIPPER],
         frames: 0,
     };
-    let at = |position, closing_yaw, gripper, frames| Waypoint {
-        position,
-        closing_yaw,
-        gripper,
-        frames,
-    };
+    let at = |position, closing_yaw, gripper, frames| Waypoint { position, closing_yaw, gripper, frames };
     vec![
         start,
-        at(
-            over(cube.translation, HOVER_HEIGHT),
-            grasp_yaw,
-            GRIPPER_OPEN,
-            45,
-        ),
+        at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_OPEN, 45),
         at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_OPEN, 30),
-        at(
-            over(cube.translation, grasp_z),
-            grasp_yaw,
-            GRIPPER_CLOSED,
-            18,
-        ),
-        at(
-            over(cube.translation, HOVER_HEIGHT),
-            grasp_yaw,
-            GRIPPER_CLOSED,
-            25,
-        ),
+        at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_CLOSED, 18),
+        at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_CLOSED, 25),
         at(over(bowl, HOVER_HEIGHT), release_yaw, GRIPPER_CLOSED, 40),
         at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_CLOSED, 18),
         at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_OPEN, 12),
@@ -203,11 +182,7 @@ fn yaw_of(direction: Vec3) -> f32 {
 /// Angle wrapped into (-pi, pi].
 fn wrap(angle: f32) -> f32 {
     let wrapped = (angle + PI).rem_euclid(TAU) - PI;
-    if wrapped <= -PI {
-        wrapped + TAU
-    } else {
-        wrapped
-    }
+    if wrapped <= -PI { wrapped + TAU } else { wrapped }
 }
 
 fn angle_between(a: f32, b: f32) -> f32 {

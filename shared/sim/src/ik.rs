@@ -36,9 +36,7 @@ fn error(base: Pose, q: &[f32; JOINT_COUNT], target: &GripperTarget) -> [f32; 6]
         turn = -turn;
     }
     let rotation = turn.to_scaled_axis() * ORIENTATION_WEIGHT;
-    [
-        position.x, position.y, position.z, rotation.x, rotation.y, rotation.z,
-    ]
+    [position.x, position.y, position.z, rotation.x, rotation.y, rotation.z]
 }
 
 /// Joint angles (radians) reaching `target`, starting the search from `start`; the gripper
@@ -87,9 +85,7 @@ fn norm(v: &[f32]) -> f32 {
 /// Gaussian elimination with partial pivoting for the small symmetric positive system.
 fn solve_linear<const N: usize>(mut a: [[f32; N]; N], mut b: [f32; N]) -> [f32; N] {
     for col in 0..N {
-        let pivot = (col..N)
-            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
-            .unwrap_or(col);
+        let pivot = (col..N).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs())).unwrap_or(col);
         a.swap(col, pivot);
         b.swap(col, pivot);
         for row in col + 1..N {
@@ -127,16 +123,9 @@ mod tests {
         let goal_q = [0.4, -1.2, 1.9, 1.0, -1.2, 0.0];
         let gripper = arm::forward_kinematics(Pose::IDENTITY, &goal_q)[GRIPPER_LINK];
         let point = arm::grasp_point(0.012);
-        let target = GripperTarget {
-            point,
-            position: gripper.transform_point(point),
-            orientation: gripper.rotation,
-        };
+        let target = GripperTarget { point, position: gripper.transform_point(point), orientation: gripper.rotation };
         let q = solve(Pose::IDENTITY, &HOME, &target);
         let (position, orientation) = residual(Pose::IDENTITY, &q, &target);
-        assert!(
-            position < 1e-3 && orientation < 1e-2,
-            "{position} m, {orientation} rad"
-        );
+        assert!(position < 1e-3 && orientation < 1e-2, "{position} m, {orientation} rad");
     }
 }

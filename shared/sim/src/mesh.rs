@@ -19,23 +19,14 @@ pub fn triangulate(primitive: &Primitive, out: &mut Vec<[Vec3; 3]>) {
                 )
             };
             // Each face as a quad of corner indices, counter-clockwise from outside.
-            const FACES: [[usize; 4]; 6] = [
-                [0, 2, 3, 1],
-                [4, 5, 7, 6],
-                [0, 1, 5, 4],
-                [2, 6, 7, 3],
-                [0, 4, 6, 2],
-                [1, 3, 7, 5],
-            ];
+            const FACES: [[usize; 4]; 6] =
+                [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
             for [a, b, c, d] in FACES {
                 out.push([corner(a), corner(b), corner(c)]);
                 out.push([corner(a), corner(c), corner(d)]);
             }
         }
-        Primitive::Cylinder {
-            half_height,
-            radius,
-        } => {
+        Primitive::Cylinder { half_height, radius } => {
             let rim = |k: usize, y: f32| {
                 let angle = k as f32 * std::f32::consts::TAU / CYLINDER_SIDES as f32;
                 Vec3::new(angle.cos() * radius, y, -angle.sin() * radius)
@@ -63,23 +54,15 @@ mod tests {
     #[test]
     fn triangles_face_outwards() {
         for primitive in [
-            Primitive::Cuboid {
-                half: Vec3::new(0.1, 0.2, 0.3),
-            },
-            Primitive::Cylinder {
-                half_height: 0.1,
-                radius: 0.2,
-            },
+            Primitive::Cuboid { half: Vec3::new(0.1, 0.2, 0.3) },
+            Primitive::Cylinder { half_height: 0.1, radius: 0.2 },
         ] {
             let mut triangles = Vec::new();
             triangulate(&primitive, &mut triangles);
             for [a, b, c] in triangles {
                 let normal = (b - a).cross(c - a);
                 let centroid = (a + b + c) / 3.0;
-                assert!(
-                    normal.dot(centroid) > 0.0,
-                    "{primitive:?}: {a:?} {b:?} {c:?}"
-                );
+                assert!(normal.dot(centroid) > 0.0, "{primitive:?}: {a:?} {b:?} {c:?}");
             }
         }
     }

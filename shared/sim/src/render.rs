@@ -30,9 +30,7 @@ pub fn render(scene: &Scene, camera: Camera, width: usize, height: usize) -> Vec
             mesh::triangulate(&part.primitive, &mut local_triangles);
             for triangle in &local_triangles {
                 let world = triangle.map(|corner| pose.transform_point(corner));
-                let normal = (world[1] - world[0])
-                    .cross(world[2] - world[0])
-                    .normalize_or_zero();
+                let normal = (world[1] - world[0]).cross(world[2] - world[0]).normalize_or_zero();
                 let brightness = AMBIENT + (1.0 - AMBIENT) * normal.dot(light).max(0.0);
                 rasterizer.draw(world, normal, shade(part.color, brightness));
             }
@@ -94,11 +92,7 @@ impl Rasterizer {
         }
         let camera = world.map(|p| {
             let d = p - self.view.eye;
-            Vec3::new(
-                d.dot(self.right),
-                d.dot(self.view.up),
-                d.dot(self.view.forward),
-            )
+            Vec3::new(d.dot(self.right), d.dot(self.view.up), d.dot(self.view.forward))
         });
         if camera.iter().all(|p| p.z >= NEAR) {
             let screen = camera.map(|p| self.project(p));
@@ -155,8 +149,7 @@ impl Rasterizer {
             (dx, dy, -(p.x * dx + p.y * dy))
         };
         let edges = [edge(b, c), edge(c, a), edge(a, b)];
-        let depth_dx =
-            edges[0].0 * a.inv_depth + edges[1].0 * b.inv_depth + edges[2].0 * c.inv_depth;
+        let depth_dx = edges[0].0 * a.inv_depth + edges[1].0 * b.inv_depth + edges[2].0 * c.inv_depth;
         for y in min_y..=max_y {
             let py = y as f32 + 0.5;
             let px = min_x as f32 + 0.5;

@@ -23,8 +23,8 @@ use crate::shape::{Part, Rgb};
 use crate::task::{self, BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, Layout};
 use rapier3d::math::{Pose, Rot3, Vec3};
 use rapier3d::prelude::{
-    ColliderHandle, ContactPair, FixedJointBuilder, ImpulseJointHandle, PhysicsWorld,
-    RigidBodyBuilder, RigidBodyHandle, RigidBodyType,
+    ColliderHandle, ContactPair, FixedJointBuilder, ImpulseJointHandle, PhysicsWorld, RigidBodyBuilder,
+    RigidBodyHandle, RigidBodyType,
 };
 use std::f32::consts::FRAC_PI_2;
 
@@ -102,13 +102,7 @@ impl Scene {
             Vec3::new(TABLE_HALF[0], TABLE_HALF[1], 0.02),
             TABLE_COLOR,
         )];
-        add_body(
-            &mut world,
-            &mut visuals,
-            RigidBodyBuilder::fixed(),
-            table_parts,
-            0.6,
-        );
+        add_body(&mut world, &mut visuals, RigidBodyBuilder::fixed(), table_parts, 0.6);
         add_body(
             &mut world,
             &mut visuals,
@@ -117,9 +111,11 @@ impl Scene {
             0.6,
         );
         let cube_parts = vec![Part::cuboid(Vec3::ZERO, Vec3::splat(CUBE_HALF), CUBE_COLOR)];
-        let cube_body = RigidBodyBuilder::dynamic()
-            .translation(layout.cube_position)
-            .rotation(Vec3::new(0.0, 0.0, layout.cube_yaw));
+        let cube_body = RigidBodyBuilder::dynamic().translation(layout.cube_position).rotation(Vec3::new(
+            0.0,
+            0.0,
+            layout.cube_yaw,
+        ));
         let (cube, cube_colliders) = add_body(&mut world, &mut visuals, cube_body, cube_parts, 1.0);
 
         let base = Pose::IDENTITY;
@@ -131,13 +127,10 @@ impl Scene {
             let parts = arm::link_parts();
             let mut handles = Vec::with_capacity(LINK_COUNT);
             for (i, parts) in parts.into_iter().enumerate() {
-                let builder = if i == 0 {
-                    RigidBodyBuilder::fixed()
-                } else {
-                    RigidBodyBuilder::kinematic_position_based()
-                }
-                .pose(link_poses[i])
-                .additional_mass(arm::LINKS[i].mass);
+                let builder =
+                    if i == 0 { RigidBodyBuilder::fixed() } else { RigidBodyBuilder::kinematic_position_based() }
+                        .pose(link_poses[i])
+                        .additional_mass(arm::LINKS[i].mass);
                 let (handle, colliders) = add_body(&mut world, &mut visuals, builder, parts, 1.0);
                 if i == JAW_LINK {
                     jaw_colliders.extend(&colliders);
@@ -263,18 +256,12 @@ impl Scene {
 
     /// Everything to draw, with each body's current pose.
     pub fn visuals(&self) -> impl Iterator<Item = (Pose, &[Part])> {
-        self.visuals.iter().map(|visual| {
-            (
-                *self.world.bodies[visual.body].position(),
-                visual.parts.as_slice(),
-            )
-        })
+        self.visuals.iter().map(|visual| (*self.world.bodies[visual.body].position(), visual.parts.as_slice()))
     }
 
     /// Whether any arm collider is in contact with the cube.
     pub fn arm_touches_cube(&self) -> bool {
-        self.cube_contacts(&self.arm_colliders)
-            .any(|pair| pair.has_any_active_contact())
+        self.cube_contacts(&self.arm_colliders).any(|pair| pair.has_any_active_contact())
     }
 
     /// Whether the cube is held by the gripper (see the module notes on grasping).
@@ -287,11 +274,8 @@ impl Scene {
     fn gravity_loads(&self) -> [f32; JOINT_COUNT] {
         let links = self.links.map(|link| *self.world.bodies[link].position());
         let cube = &self.world.bodies[self.cube];
-        let held = self.grip.map(|_| Payload {
-            link: GRIPPER_LINK,
-            mass: cube.mass(),
-            position: cube.center_of_mass(),
-        });
+        let held =
+            self.grip.map(|_| Payload { link: GRIPPER_LINK, mass: cube.mass(), position: cube.center_of_mass() });
         arm::gravity_torques(&links, held, GRAVITY)
     }
 
@@ -306,20 +290,14 @@ impl Scene {
                 && self.deepest_contact(&self.finger_colliders) > -TOUCHING =>
             {
                 let gripper = self.links[GRIPPER_LINK];
-                let relative = self.world.bodies[gripper]
-                    .position()
-                    .inv_mul(&self.cube_pose());
+                let relative = self.world.bodies[gripper].position().inv_mul(&self.cube_pose());
                 // The hold stands in for the fixed finger's contact with the cube: left on, that
                 // contact fights the joint, stores impulse and flings the cube when it lets go.
                 let hold = FixedJointBuilder::new()
                     .local_frame1(relative)
                     .local_frame2(Pose::IDENTITY)
                     .contacts_enabled(false);
-                self.grip = Some(
-                    self.world
-                        .impulse_joints
-                        .insert(gripper, self.cube, hold, true),
-                );
+                self.grip = Some(self.world.impulse_joints.insert(gripper, self.cube, hold, true));
             }
             Some(hold) if opening => {
                 self.world.impulse_joints.remove(hold, true);
@@ -344,16 +322,11 @@ impl Scene {
     }
 
     /// Contact pairs between the cube and any of `colliders`.
-    fn cube_contacts<'a>(
-        &'a self,
-        colliders: &'a [ColliderHandle],
-    ) -> impl Iterator<Item = &'a ContactPair> {
+    fn cube_contacts<'a>(&'a self, colliders: &'a [ColliderHandle]) -> impl Iterator<Item = &'a ContactPair> {
         self.world
             .narrow_phase
             .contact_pairs_with(self.cube_collider)
-            .filter(move |pair| {
-                colliders.contains(&pair.collider1) || colliders.contains(&pair.collider2)
-            })
+            .filter(move |pair| colliders.contains(&pair.collider1) || colliders.contains(&pair.collider2))
     }
 }
 
@@ -372,19 +345,11 @@ fn add_body(
         .iter()
         .map(|part| {
             // Wood-like density for the cube; other bodies are fixed or kinematic.
-            let collider =
-                part.collider()
-                    .friction(friction)
-                    .density(if is_dynamic { 600.0 } else { 0.0 });
-            world
-                .colliders
-                .insert_with_parent(collider, handle, &mut world.bodies)
+            let collider = part.collider().friction(friction).density(if is_dynamic { 600.0 } else { 0.0 });
+            world.colliders.insert_with_parent(collider, handle, &mut world.bodies)
         })
         .collect();
-    visuals.push(Visual {
-        body: handle,
-        parts,
-    });
+    visuals.push(Visual { body: handle, parts });
     (handle, colliders)
 }
 
@@ -393,27 +358,15 @@ fn bowl_parts() -> Vec<Part> {
     let outer = BOWL_INNER_RADIUS + BOWL_WALL;
     // Rapier cylinders stand along local y; turn it to stand along z.
     let upright = Rot3::from_rotation_x(FRAC_PI_2);
-    let mut parts = vec![Part::cylinder(
-        Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5),
-        upright,
-        BOWL_FLOOR * 0.5,
-        outer,
-        BOWL_COLOR,
-    )];
+    let mut parts =
+        vec![Part::cylinder(Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5), upright, BOWL_FLOOR * 0.5, outer, BOWL_COLOR)];
     let segment_half_length = outer * (std::f32::consts::PI / BOWL_SEGMENTS as f32).tan();
     for k in 0..BOWL_SEGMENTS {
         let angle = k as f32 * std::f32::consts::TAU / BOWL_SEGMENTS as f32;
         let radial = BOWL_INNER_RADIUS + BOWL_WALL * 0.5;
-        let center = Vec3::new(
-            angle.cos() * radial,
-            angle.sin() * radial,
-            BOWL_HEIGHT * 0.5,
-        );
-        let mut wall = Part::cuboid(
-            Vec3::ZERO,
-            Vec3::new(BOWL_WALL * 0.5, segment_half_length, BOWL_HEIGHT * 0.5),
-            BOWL_COLOR,
-        );
+        let center = Vec3::new(angle.cos() * radial, angle.sin() * radial, BOWL_HEIGHT * 0.5);
+        let mut wall =
+            Part::cuboid(Vec3::ZERO, Vec3::new(BOWL_WALL * 0.5, segment_half_length, BOWL_HEIGHT * 0.5), BOWL_COLOR);
         wall.local = Pose::from_parts(center, Rot3::from_rotation_z(angle));
         parts.push(wall);
     }
@@ -427,11 +380,7 @@ mod tests {
     #[test]
     fn out_of_range_and_non_finite_actions_keep_the_arm_in_its_limits() {
         let mut scene = Scene::new(0);
-        for action in [
-            [1e6; JOINT_COUNT],
-            [f32::NAN; JOINT_COUNT],
-            [-1e6; JOINT_COUNT],
-        ] {
+        for action in [[1e6; JOINT_COUNT], [f32::NAN; JOINT_COUNT], [-1e6; JOINT_COUNT]] {
             for _ in 0..30 {
                 scene.step(action);
             }

@@ -42,12 +42,7 @@ pub struct Servo {
 impl Servo {
     /// An STS3215 at rest at `position`.
     pub fn new(position: f32) -> Self {
-        Self {
-            position,
-            goal: position,
-            stall_torque: STALL_TORQUE,
-            torque: 0.0,
-        }
+        Self { position, goal: position, stall_torque: STALL_TORQUE, torque: 0.0 }
     }
 
     /// Moves towards the goal for `dt` seconds while carrying `load` (N·m about the joint axis,
@@ -114,11 +109,7 @@ mod tests {
         servo.advance(DT, load, None);
         // Full drive, on the torque-speed line where it balances the load.
         let speed = NO_LOAD_SPEED * (1.0 - load / STALL_TORQUE);
-        assert!(
-            (servo.position - speed * DT).abs() < 1e-6,
-            "{}",
-            servo.position
-        );
+        assert!((servo.position - speed * DT).abs() < 1e-6, "{}", servo.position);
         assert_eq!(servo.torque, STALL_TORQUE);
     }
 
@@ -126,11 +117,7 @@ mod tests {
     fn overloaded_servo_is_back_driven() {
         let mut servo = Servo::new(0.0);
         servo.advance(DT, 2.0 * STALL_TORQUE, None);
-        assert!(
-            (servo.position + NO_LOAD_SPEED * DT).abs() < 1e-6,
-            "{}",
-            servo.position
-        );
+        assert!((servo.position + NO_LOAD_SPEED * DT).abs() < 1e-6, "{}", servo.position);
         assert_eq!(servo.torque, STALL_TORQUE);
     }
 

@@ -27,11 +27,7 @@ pub struct Part {
 
 impl Part {
     pub fn cuboid(center: Vec3, half: Vec3, color: Rgb) -> Self {
-        Self {
-            primitive: Primitive::Cuboid { half },
-            local: Pose::from_translation(center),
-            color,
-        }
+        Self { primitive: Primitive::Cuboid { half }, local: Pose::from_translation(center), color }
     }
 
     /// A box of square-ish cross-section (`half_width` along local x, `half_depth` along the
@@ -40,25 +36,12 @@ impl Part {
         let along = to - from;
         let rotation = Rot3::from_rotation_arc(Vec3::Y, along.normalize());
         let half = Vec3::new(half_width, along.length() * 0.5, half_depth);
-        Self {
-            primitive: Primitive::Cuboid { half },
-            local: Pose::from_parts((from + to) * 0.5, rotation),
-            color,
-        }
+        Self { primitive: Primitive::Cuboid { half }, local: Pose::from_parts((from + to) * 0.5, rotation), color }
     }
 
-    pub fn cylinder(
-        center: Vec3,
-        rotation: Rot3,
-        half_height: f32,
-        radius: f32,
-        color: Rgb,
-    ) -> Self {
+    pub fn cylinder(center: Vec3, rotation: Rot3, half_height: f32, radius: f32, color: Rgb) -> Self {
         Self {
-            primitive: Primitive::Cylinder {
-                half_height,
-                radius,
-            },
+            primitive: Primitive::Cylinder { half_height, radius },
             local: Pose::from_parts(center, rotation),
             color,
         }
@@ -68,10 +51,7 @@ impl Part {
     pub fn collider(&self) -> ColliderBuilder {
         let shape = match self.primitive {
             Primitive::Cuboid { half } => SharedShape::cuboid(half.x, half.y, half.z),
-            Primitive::Cylinder {
-                half_height,
-                radius,
-            } => SharedShape::cylinder(half_height, radius),
+            Primitive::Cylinder { half_height, radius } => SharedShape::cylinder(half_height, radius),
         };
         ColliderBuilder::new(shape).position(self.local)
     }

@@ -91,9 +91,7 @@ mod tests {
     fn layouts_keep_cube_and_bowl_apart_and_yaw_bounded() {
         for seed in 0..200 {
             let layout = Layout::from_seed(seed);
-            let apart = (layout.cube_position - layout.bowl_position)
-                .truncate()
-                .length();
+            let apart = (layout.cube_position - layout.bowl_position).truncate().length();
             assert!(apart > BOWL_INNER_RADIUS + 0.035, "seed {seed}: {apart}");
             assert!(layout.cube_yaw.abs() <= MAX_CUBE_YAW);
         }

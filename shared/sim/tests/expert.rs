@@ -7,26 +7,12 @@ const MAX_FRAMES: u32 = 400;
 
 #[test]
 fn expert_puts_the_cube_in_the_bowl_in_at_least_18_of_20_seeds() {
-    let outcomes: Vec<_> = (0..20)
-        .map(|seed| run_expert_episode(seed, MAX_FRAMES))
-        .collect();
+    let outcomes: Vec<_> = (0..20).map(|seed| run_expert_episode(seed, MAX_FRAMES)).collect();
     let successes = outcomes.iter().filter(|o| o.success).count();
-    let failed: Vec<_> = outcomes
-        .iter()
-        .enumerate()
-        .filter(|(_, o)| !o.success)
-        .map(|(seed, _)| seed)
-        .collect();
-    assert!(
-        successes >= 18,
-        "{successes}/20 succeeded; failed seeds {failed:?}"
-    );
+    let failed: Vec<_> = outcomes.iter().enumerate().filter(|(_, o)| !o.success).map(|(seed, _)| seed).collect();
+    assert!(successes >= 18, "{successes}/20 succeeded; failed seeds {failed:?}");
     for (seed, outcome) in outcomes.iter().enumerate() {
-        assert!(
-            (150..=250).contains(&outcome.frames),
-            "seed {seed}: {} frames",
-            outcome.frames
-        );
+        assert!((150..=250).contains(&outcome.frames), "seed {seed}: {} frames", outcome.frames);
     }
 }
 
@@ -39,23 +25,11 @@ fn states_and_actions_stay_within_joint_limits() {
             let (state, action) = (arm::from_robot_units(state), arm::from_robot_units(action));
             for i in 0..JOINT_COUNT {
                 let (lower, upper) = (joints[i].lower - 1e-4, joints[i].upper + 1e-4);
-                assert!(
-                    (lower..=upper).contains(&state[i]),
-                    "seed {seed} frame {frame} joint {i}: {}",
-                    state[i]
-                );
-                assert!(
-                    (lower..=upper).contains(&action[i]),
-                    "seed {seed} frame {frame} joint {i}: {}",
-                    action[i]
-                );
+                assert!((lower..=upper).contains(&state[i]), "seed {seed} frame {frame} joint {i}: {}", state[i]);
+                assert!((lower..=upper).contains(&action[i]), "seed {seed} frame {frame} joint {i}: {}", action[i]);
             }
             let units = fedvla_sim::arm::to_robot_units(&state);
-            assert!(
-                (0.0..=100.0).contains(&units[arm::GRIPPER]),
-                "gripper {}",
-                units[arm::GRIPPER]
-            );
+            assert!((0.0..=100.0).contains(&units[arm::GRIPPER]), "gripper {}", units[arm::GRIPPER]);
         }
     }
 }

@@ -7,16 +7,12 @@ const SIZE: usize = 256;
 
 /// Pixels that look like the arm's orange printed parts.
 fn orange_pixels(rgb: &[u8]) -> usize {
-    rgb.chunks_exact(3)
-        .filter(|p| p[0] > 120 && p[1] > 30 && p[1] < (p[0] as u16 * 3 / 4) as u8 && p[2] < 60)
-        .count()
+    rgb.chunks_exact(3).filter(|p| p[0] > 120 && p[1] > 30 && p[1] < (p[0] as u16 * 3 / 4) as u8 && p[2] < 60).count()
 }
 
 /// Pixels that look like the red cube.
 fn red_pixels(rgb: &[u8]) -> usize {
-    rgb.chunks_exact(3)
-        .filter(|p| p[0] > 90 && p[1] < 40 && p[2] < 40)
-        .count()
+    rgb.chunks_exact(3).filter(|p| p[0] > 90 && p[1] < 40 && p[2] < 40).count()
 }
 
 fn variance(rgb: &[u8]) -> f64 {
@@ -39,37 +35,13 @@ fn cameras_render_arm_and_cube() {
     for camera in Camera::ALL {
         let rgb = render(&scene, camera, SIZE, SIZE);
         assert_eq!(rgb.len(), SIZE * SIZE * 3);
-        let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
-            .join(format!("{}.png", camera.name()));
-        image::save_buffer(
-            &path,
-            &rgb,
-            SIZE as u32,
-            SIZE as u32,
-            image::ColorType::Rgb8,
-        )
-        .expect("write png");
+        let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("{}.png", camera.name()));
+        image::save_buffer(&path, &rgb, SIZE as u32, SIZE as u32, image::ColorType::Rgb8).expect("write png");
         let (variance, orange, red) = (variance(&rgb), orange_pixels(&rgb), red_pixels(&rgb));
-        println!(
-            "{}: variance {variance:.0}, orange {orange}, red {red}, saved {}",
-            camera.name(),
-            path.display()
-        );
-        assert!(
-            variance > 100.0,
-            "{} looks blank: variance {variance}",
-            camera.name()
-        );
-        assert!(
-            orange > 200,
-            "{}: only {orange} arm-coloured pixels",
-            camera.name()
-        );
-        assert!(
-            red > 30,
-            "{}: only {red} cube-coloured pixels",
-            camera.name()
-        );
+        println!("{}: variance {variance:.0}, orange {orange}, red {red}, saved {}", camera.name(), path.display());
+        assert!(variance > 100.0, "{} looks blank: variance {variance}", camera.name());
+        assert!(orange > 200, "{}: only {orange} arm-coloured pixels", camera.name());
+        assert!(red > 30, "{}: only {red} cube-coloured pixels", camera.name());
     }
 }
 

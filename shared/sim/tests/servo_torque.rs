@@ -38,10 +38,7 @@ fn a_load_within_the_limit_is_reached_and_held() {
     let mut scene = Scene::new(0);
     drive(&mut scene, &STRETCHED, 60);
     let load = gravity_load(&STRETCHED)[SHOULDER_LIFT];
-    assert!(
-        (0.9..STALL_TORQUE).contains(&load.abs()),
-        "shoulder load {load} N·m"
-    );
+    assert!((0.9..STALL_TORQUE).contains(&load.abs()), "shoulder load {load} N·m");
     for _ in 0..60 {
         scene.step(arm::to_robot_units(&STRETCHED));
         let q = scene.joint_positions();
@@ -74,20 +71,12 @@ fn shoulder_load_grows_from_upright_to_stretched_out_as_the_weights_lever() {
     let shoulder_y = scene.link_pose(SHOULDER_LIFT + 1).translation.y;
     let by_hand: f32 = (SHOULDER_LIFT + 1..LINKS.len())
         .map(|link| {
-            let center = scene
-                .link_pose(link)
-                .transform_point(LINKS[link].center_of_mass);
-            assert!(
-                center.y < shoulder_y,
-                "link {link} is not ahead of the shoulder"
-            );
+            let center = scene.link_pose(link).transform_point(LINKS[link].center_of_mass);
+            assert!(center.y < shoulder_y, "link {link} is not ahead of the shoulder");
             LINKS[link].mass * -GRAVITY.z * (shoulder_y - center.y)
         })
         .sum();
-    assert!(
-        (stretched.abs() - by_hand).abs() < 1e-3,
-        "{stretched} N·m vs {by_hand} N·m by hand"
-    );
+    assert!((stretched.abs() - by_hand).abs() < 1e-3, "{stretched} N·m vs {by_hand} N·m by hand");
 }
 
 #[test]
@@ -108,10 +97,7 @@ fn a_servo_weaker_than_its_load_sags_and_cannot_lift() {
     let sag_speed = NO_LOAD_SPEED * (load.abs() / weak - 1.0);
     let sagged = scene.joint_positions()[SHOULDER_LIFT];
     let expected = sag_speed / FPS as f32;
-    assert!(
-        (sagged - expected).abs() < 0.1 * expected,
-        "sagged {sagged} rad in one frame, expected about {expected}"
-    );
+    assert!((sagged - expected).abs() < 0.1 * expected, "sagged {sagged} rad in one frame, expected about {expected}");
 
     // It ends on the joint's mechanical stop, still pushing with all it has.
     drive(&mut scene, &lift, 30);
@@ -136,16 +122,9 @@ fn a_servo_just_short_of_its_load_sags_until_the_load_eases_to_its_limit_and_sta
     drive(&mut scene, &STRETCHED, 240);
     let sagged = scene.joint_positions();
     let stop = arm::joints()[SHOULDER_LIFT].upper;
-    assert!(
-        (0.02..stop - 0.02).contains(&sagged[SHOULDER_LIFT]),
-        "shoulder at {}",
-        sagged[SHOULDER_LIFT]
-    );
+    assert!((0.02..stop - 0.02).contains(&sagged[SHOULDER_LIFT]), "shoulder at {}", sagged[SHOULDER_LIFT]);
     let load = gravity_load(&sagged)[SHOULDER_LIFT];
-    assert!(
-        (load.abs() - limit).abs() < 1e-3,
-        "load {load} N·m against a {limit} N·m limit"
-    );
+    assert!((load.abs() - limit).abs() < 1e-3, "load {load} N·m against a {limit} N·m limit");
     assert_eq!(scene.joint_torques()[SHOULDER_LIFT], -limit);
     scene.step(arm::to_robot_units(&STRETCHED));
     let moved = scene.joint_positions()[SHOULDER_LIFT] - sagged[SHOULDER_LIFT];
@@ -162,10 +141,7 @@ fn speed_limits_hold_and_a_heavy_lift_is_slower() {
     for _ in 0..5 {
         scene.step(arm::to_robot_units(&pan));
         let q = scene.joint_positions()[SHOULDER_PAN];
-        assert!(
-            ((q - previous) - MAX_SPEED / FPS as f32).abs() < 1e-5,
-            "{q}"
-        );
+        assert!(((q - previous) - MAX_SPEED / FPS as f32).abs() < 1e-5, "{q}");
         previous = q;
     }
 
@@ -185,10 +161,7 @@ fn speed_limits_hold_and_a_heavy_lift_is_slower() {
     // Through a whole expert episode no joint outruns the top speed.
     let outcome = run_expert_episode(3, 400);
     for pair in outcome.states.windows(2) {
-        let (from, to) = (
-            arm::from_robot_units(&pair[0]),
-            arm::from_robot_units(&pair[1]),
-        );
+        let (from, to) = (arm::from_robot_units(&pair[0]), arm::from_robot_units(&pair[1]));
         for i in 0..JOINT_COUNT {
             assert!(
                 (to[i] - from[i]).abs() <= MAX_SPEED / FPS as f32 + 1e-5,

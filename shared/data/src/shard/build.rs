@@ -7,7 +7,9 @@ use std::path::Path;
 use safetensors::tensor::{Dtype, View};
 use sha2::{Digest, Sha256};
 
-use super::{MANIFEST_KEY, SHARD_FORMAT, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, content_hash, hex, sidecar_path};
+use super::{
+    MANIFEST_KEY, SHARD_FORMAT, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, content_hash, hex, sidecar_path,
+};
 use crate::error::{DataError, Result};
 use crate::partition::Partition;
 use crate::reader::{EpisodeMeta, LeRobotDataset};
@@ -55,10 +57,12 @@ pub fn build_shard(
     tokenize: Option<Tokenizer>,
     out: &Path,
 ) -> Result<ShardFileManifest> {
-    let split = partition
-        .clients
-        .get(client)
-        .ok_or_else(|| DataError::InvalidInput(format!("client {client} is not in the partition ({} clients)", partition.clients.len())))?;
+    let split = partition.clients.get(client).ok_or_else(|| {
+        DataError::InvalidInput(format!(
+            "client {client} is not in the partition ({} clients)",
+            partition.clients.len()
+        ))
+    })?;
     let held_out: BTreeSet<usize> = split.held_out.iter().copied().collect();
     let mut episode_ids: Vec<usize> = split.all().collect();
     episode_ids.sort_unstable();
@@ -66,7 +70,14 @@ pub fn build_shard(
     let cameras = dataset.camera_keys();
     let dims: Vec<usize> = VECTOR_FEATURES
         .iter()
-        .map(|k| dataset.info().features.get(k).map(crate::info::Feature::width).ok_or_else(|| DataError::InvalidInput(format!("dataset has no {k} feature"))))
+        .map(|k| {
+            dataset
+                .info()
+                .features
+                .get(k)
+                .map(crate::info::Feature::width)
+                .ok_or_else(|| DataError::InvalidInput(format!("dataset has no {k} feature")))
+        })
         .collect::<Result<_>>()?;
 
     let mut images: Vec<Vec<u8>> = vec![Vec::new(); cameras.len()];
@@ -75,9 +86,9 @@ pub fn build_shard(
     let mut tasks: Vec<String> = Vec::new();
     let mut rows = 0usize;
     for ep_id in &episode_ids {
-        let episode = by_index
-            .get(ep_id)
-            .ok_or_else(|| DataError::InvalidInput(format!("episode {ep_id} of the partition is not in the dataset")))?;
+        let episode = by_index.get(ep_id).ok_or_else(|| {
+            DataError::InvalidInput(format!("episode {ep_id} of the partition is not in the dataset"))
+        })?;
         let indices: Vec<usize> = (episode.dataset_from_index..episode.dataset_to_index).collect();
         for (c, camera) in cameras.iter().enumerate() {
             for frame in dataset.camera_frames(camera, episode, &indices)? {
@@ -97,7 +108,12 @@ pub fn build_shard(
             task_rows.push(local as i64);
             frame_index.push((i - episode.dataset_from_index) as i64);
         }
-        episode_rows.extend([*ep_id as i64, rows as i64, (rows + indices.len()) as i64, i64::from(held_out.contains(ep_id))]);
+        episode_rows.extend([
+            *ep_id as i64,
+            rows as i64,
+            (rows + indices.len()) as i64,
+            i64::from(held_out.contains(ep_id)),
+        ]);
         rows += indices.len();
     }
 
@@ -111,7 +127,10 @@ pub fn build_shard(
         let stats = match dataset.stats().and_then(|s| s.get(*key)) {
             Some(s) => s.clone(),
             None => {
-                let all: Vec<Vec<f64>> = (0..dataset.len()).filter_map(|i| dataset.vector(key, i)).map(|r| r.iter().map(|&v| f64::from(v)).collect()).collect();
+                let all: Vec<Vec<f64>> = (0..dataset.len())
+                    .filter_map(|i| dataset.vector(key, i))
+                    .map(|r| r.iter().map(|&v| f64::from(v)).collect())
+                    .collect();
                 FeatureStats::from_rows(&all, *dim)
             }
         };
@@ -136,7 +155,10 @@ pub fn build_shard(
             }
         }
         tensors.insert("task_tokens".into(), i64_tensor(&ids, vec![tasks.len(), l]));
-        tensors.insert("task_attention_mask".into(), OwnedTensor { dtype: Dtype::U8, shape: vec![tasks.len(), l], data: mask });
+        tensors.insert(
+            "task_attention_mask".into(),
+            OwnedTensor { dtype: Dtype::U8, shape: vec![tasks.len(), l], data: mask },
+        );
     }
 
     let manifest = ShardManifest {
@@ -156,11 +178,16 @@ pub fn build_shard(
         tasks,
         tokenized: tokenize.is_some(),
         tokenizer_max_length: spec.tokenizer_max_length,
-        content_sha256: content_hash(tensors.iter().map(|(n, t)| (n.as_str(), t.dtype, t.shape.as_slice(), t.data.as_slice()))),
+        content_sha256: content_hash(
+            tensors.iter().map(|(n, t)| (n.as_str(), t.dtype, t.shape.as_slice(), t.data.as_slice())),
+        ),
     };
     let manifest_json = serde_json::to_string(&manifest).map_err(|e| DataError::InvalidInput(e.to_string()))?;
-    let bytes = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(HashMap::from([(MANIFEST_KEY.to_string(), manifest_json)])))
-        .map_err(|e| DataError::BadShard { path: out.to_path_buf(), reason: e.to_string() })?;
+    let bytes = safetensors::serialize(
+        tensors.iter().map(|(n, t)| (n.as_str(), t)),
+        Some(HashMap::from([(MANIFEST_KEY.to_string(), manifest_json)])),
+    )
+    .map_err(|e| DataError::BadShard { path: out.to_path_buf(), reason: e.to_string() })?;
     if let Some(dir) = out.parent() {
         std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
     }

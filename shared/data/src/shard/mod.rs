@@ -143,11 +143,18 @@ pub fn verify_shard_file(path: &Path, expected: &ShardFileManifest) -> Result<()
 /// source in errors.
 pub fn verify_shard_bytes(path: &Path, bytes: &[u8], expected: &ShardFileManifest) -> Result<()> {
     if bytes.len() as u64 != expected.file_bytes {
-        return Err(DataError::BadShard { path: path.to_path_buf(), reason: format!("{} bytes, the manifest says {}", bytes.len(), expected.file_bytes) });
+        return Err(DataError::BadShard {
+            path: path.to_path_buf(),
+            reason: format!("{} bytes, the manifest says {}", bytes.len(), expected.file_bytes),
+        });
     }
     let actual = hex(&Sha256::digest(bytes));
     if actual != expected.file_sha256 {
-        return Err(DataError::ChecksumMismatch { path: path.to_path_buf(), expected: expected.file_sha256.clone(), actual });
+        return Err(DataError::ChecksumMismatch {
+            path: path.to_path_buf(),
+            expected: expected.file_sha256.clone(),
+            actual,
+        });
     }
     Ok(())
 }
@@ -163,7 +170,11 @@ impl ClientShard {
     pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
         let bad = |reason: String| DataError::BadShard { path: path.to_path_buf(), reason };
         let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(|e| bad(e.to_string()))?;
-        let manifest_json = metadata.metadata().as_ref().and_then(|m| m.get(MANIFEST_KEY)).ok_or_else(|| bad("no manifest in the metadata".into()))?;
+        let manifest_json = metadata
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get(MANIFEST_KEY))
+            .ok_or_else(|| bad("no manifest in the metadata".into()))?;
         let manifest: ShardManifest = serde_json::from_str(manifest_json).map_err(|e| bad(format!("manifest: {e}")))?;
         if manifest.format != SHARD_FORMAT {
             return Err(bad(format!("format {:?}, expected {SHARD_FORMAT:?}", manifest.format)));
@@ -172,10 +183,18 @@ impl ClientShard {
         let views = st.tensors();
         let actual = content_hash(views.iter().map(|(n, v)| (n.as_str(), v.dtype(), v.shape(), v.data())));
         if actual != manifest.content_sha256 {
-            return Err(DataError::ChecksumMismatch { path: path.to_path_buf(), expected: manifest.content_sha256.clone(), actual });
+            return Err(DataError::ChecksumMismatch {
+                path: path.to_path_buf(),
+                expected: manifest.content_sha256.clone(),
+                actual,
+            });
         }
         let raw = |name: &str, dtype: Dtype| -> Result<&[u8]> {
-            let view = views.iter().find(|(n, _)| n == name).map(|(_, v)| v).ok_or_else(|| bad(format!("tensor {name} missing")))?;
+            let view = views
+                .iter()
+                .find(|(n, _)| n == name)
+                .map(|(_, v)| v)
+                .ok_or_else(|| bad(format!("tensor {name} missing")))?;
             if view.dtype() != dtype {
                 return Err(bad(format!("tensor {name} is {:?}, expected {dtype:?}", view.dtype())));
             }
@@ -185,14 +204,27 @@ impl ClientShard {
             Ok(raw(name, Dtype::F32)?.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
         };
         let i64s = |name: &str| -> Result<Vec<i64>> {
-            Ok(raw(name, Dtype::I64)?.chunks_exact(8).map(|c| i64::from_le_bytes(c.try_into().unwrap_or([0; 8]))).collect())
+            Ok(raw(name, Dtype::I64)?
+                .chunks_exact(8)
+                .map(|c| i64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+                .collect())
         };
-        let images = manifest.cameras.iter().map(|c| Ok((c.clone(), raw(c, Dtype::U8)?.to_vec()))).collect::<Result<_>>()?;
+        let images =
+            manifest.cameras.iter().map(|c| Ok((c.clone(), raw(c, Dtype::U8)?.to_vec()))).collect::<Result<_>>()?;
         let episodes = i64s("episodes")?
             .chunks_exact(4)
-            .map(|r| ShardEpisode { episode_index: r[0] as usize, start: r[1] as usize, end: r[2] as usize, held_out: r[3] != 0 })
+            .map(|r| ShardEpisode {
+                episode_index: r[0] as usize,
+                start: r[1] as usize,
+                end: r[2] as usize,
+                held_out: r[3] != 0,
+            })
             .collect();
-        let task_tokens = if manifest.tokenized { Some((i64s("task_tokens")?, raw("task_attention_mask", Dtype::U8)?.to_vec())) } else { None };
+        let task_tokens = if manifest.tokenized {
+            Some((i64s("task_tokens")?, raw("task_attention_mask", Dtype::U8)?.to_vec()))
+        } else {
+            None
+        };
         let mut stats: BTreeMap<String, BTreeMap<String, Vec<f32>>> = BTreeMap::new();
         for (name, _) in &views {
             if let Some((feature, stat)) = name.strip_prefix("stats/").and_then(|s| s.rsplit_once('/')) {

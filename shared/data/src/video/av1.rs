@@ -43,7 +43,11 @@ impl Av1Decoder {
         if picture.bit_depth() != 8 || !matches!(picture.pixel_layout(), dav1d::PixelLayout::I420) {
             return Err(DataError::Decode {
                 path: path.to_path_buf(),
-                reason: format!("only 8-bit 4:2:0 AV1 is supported, got {}-bit {:?}", picture.bit_depth(), picture.pixel_layout()),
+                reason: format!(
+                    "only 8-bit 4:2:0 AV1 is supported, got {}-bit {:?}",
+                    picture.bit_depth(),
+                    picture.pixel_layout()
+                ),
             });
         }
         let (y, u, v) = (

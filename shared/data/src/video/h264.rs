@@ -4,7 +4,8 @@
 use openh264::OpenH264API;
 use openh264::decoder::Decoder;
 use openh264::encoder::{
-    BitRate, Complexity, Encoder, EncoderConfig, FrameRate, IntraFramePeriod, QpRange, RateControlMode, UsageType, VuiConfig,
+    BitRate, Complexity, Encoder, EncoderConfig, FrameRate, IntraFramePeriod, QpRange, RateControlMode, UsageType,
+    VuiConfig,
 };
 use openh264::formats::{YUVBuffer, YUVSource};
 
@@ -49,7 +50,8 @@ impl H264Encoder {
             .intra_frame_period(IntraFramePeriod::from_num_frames(gop))
             .scene_change_detect(false)
             .vui(VuiConfig::bt601());
-        let encoder = Encoder::with_api_config(OpenH264API::from_source(), config).map_err(|e| DataError::Encode(e.to_string()))?;
+        let encoder = Encoder::with_api_config(OpenH264API::from_source(), config)
+            .map_err(|e| DataError::Encode(e.to_string()))?;
         Ok(Self { encoder, width, height })
     }
 
@@ -150,7 +152,8 @@ impl H264Decoder {
                 pos += len;
             }
         }
-        let decoder = Decoder::new().map_err(|e| DataError::Decode { path: path.to_path_buf(), reason: e.to_string() })?;
+        let decoder =
+            Decoder::new().map_err(|e| DataError::Decode { path: path.to_path_buf(), reason: e.to_string() })?;
         Ok(Self { decoder, parameter_sets, nal_length_size, started: false })
     }
 
@@ -163,7 +166,8 @@ impl H264Decoder {
         }
         let mut pos = 0;
         while pos + self.nal_length_size <= sample.len() {
-            let len = sample[pos..pos + self.nal_length_size].iter().fold(0usize, |acc, &b| (acc << 8) | usize::from(b));
+            let len =
+                sample[pos..pos + self.nal_length_size].iter().fold(0usize, |acc, &b| (acc << 8) | usize::from(b));
             pos += self.nal_length_size;
             let nal = sample
                 .get(pos..pos + len)

@@ -11,8 +11,8 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-pub use crate::image::RgbImage;
 use crate::error::{DataError, Result};
+pub use crate::image::RgbImage;
 use mp4::{Mp4Track, Mp4Writer, TrackCodec};
 
 /// How camera streams are encoded.
@@ -39,7 +39,9 @@ pub struct CameraVideoWriter {
 impl CameraVideoWriter {
     pub fn create(path: &Path, width: u32, height: u32, fps: u32, encoding: VideoEncoding) -> Result<Self> {
         if !width.is_multiple_of(2) || !height.is_multiple_of(2) || width == 0 || height == 0 {
-            return Err(DataError::InvalidInput(format!("yuv420p video needs even, non-zero sizes; got {width}x{height}")));
+            return Err(DataError::InvalidInput(format!(
+                "yuv420p video needs even, non-zero sizes; got {width}x{height}"
+            )));
         }
         let (w16, h16) = (u16::try_from(width), u16::try_from(height));
         let (Ok(w16), Ok(h16)) = (w16, h16) else {
@@ -91,7 +93,9 @@ impl FrameDecoder {
                 codec: "av1".into(),
                 hint: " (build fedvla-data with feature `av1`, which needs libdav1d-dev)",
             }),
-            TrackCodec::Other { fourcc } => Err(DataError::UnsupportedCodec { path: track.path.clone(), codec: fourcc.clone(), hint: "" }),
+            TrackCodec::Other { fourcc } => {
+                Err(DataError::UnsupportedCodec { path: track.path.clone(), codec: fourcc.clone(), hint: "" })
+            }
         }
     }
 
@@ -132,15 +136,11 @@ impl VideoFile {
         let ticks = t * f64::from(self.track.timescale);
         let pos = self.by_time.partition_point(|&i| (self.track.pts[i] as f64) < ticks);
         let candidates = [pos.checked_sub(1), Some(pos)];
-        let best = candidates
-            .into_iter()
-            .flatten()
-            .filter_map(|p| self.by_time.get(p).copied())
-            .min_by(|&a, &b| {
-                let da = (self.track.sample_time_s(a) - t).abs();
-                let db = (self.track.sample_time_s(b) - t).abs();
-                da.total_cmp(&db)
-            });
+        let best = candidates.into_iter().flatten().filter_map(|p| self.by_time.get(p).copied()).min_by(|&a, &b| {
+            let da = (self.track.sample_time_s(a) - t).abs();
+            let db = (self.track.sample_time_s(b) - t).abs();
+            da.total_cmp(&db)
+        });
         match best {
             Some(s) if (self.track.sample_time_s(s) - t).abs() <= tolerance_s => Ok(s),
             _ => Err(DataError::FrameTimestamp { path: self.track.path.clone(), timestamp_s: t, tolerance_s }),
@@ -182,7 +182,12 @@ impl VideoFile {
         }
         wanted
             .iter()
-            .map(|s| decoded.get(s).cloned().ok_or_else(|| DataError::Decode { path: path.clone(), reason: format!("sample {s} produced no picture") }))
+            .map(|s| {
+                decoded.get(s).cloned().ok_or_else(|| DataError::Decode {
+                    path: path.clone(),
+                    reason: format!("sample {s} produced no picture"),
+                })
+            })
             .collect()
     }
 }

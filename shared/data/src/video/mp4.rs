@@ -252,10 +252,16 @@ fn write_full_box(out: &mut Vec<u8>, kind: &[u8; 4], version: u8, flags: u32, bo
 #[derive(Debug, Clone)]
 pub enum TrackCodec {
     /// `avcC` contents.
-    H264 { avcc: Vec<u8> },
+    H264 {
+        avcc: Vec<u8>,
+    },
     /// `av1C` contents (4 header bytes, then configuration OBUs).
-    Av1 { av1c: Vec<u8> },
-    Other { fourcc: String },
+    Av1 {
+        av1c: Vec<u8>,
+    },
+    Other {
+        fourcc: String,
+    },
 }
 
 /// The sample table of the first video track of an mp4 file.
@@ -318,7 +324,8 @@ impl Mp4Track {
         use std::io::Read;
         let mut buf = vec![0; self.sizes[i] as usize];
         file.seek(SeekFrom::Start(self.offsets[i])).map_err(|e| DataError::io(&self.path, e))?;
-        file.read_exact(&mut buf).map_err(|_| DataError::mp4(&self.path, format!("sample {i} lies past the end of the file")))?;
+        file.read_exact(&mut buf)
+            .map_err(|_| DataError::mp4(&self.path, format!("sample {i} lies past the end of the file")))?;
         Ok(buf)
     }
 }
@@ -373,7 +380,9 @@ fn boxes<'a>(path: &Path, data: &'a [u8]) -> Result<Vec<([u8; 4], &'a [u8])>> {
         };
         let header = r.pos - start;
         let end = start.checked_add(size as usize).filter(|&e| e <= data.len() && size as usize >= header);
-        let end = end.ok_or_else(|| DataError::mp4(path, format!("box {} runs past the end of the file", String::from_utf8_lossy(&kind))))?;
+        let end = end.ok_or_else(|| {
+            DataError::mp4(path, format!("box {} runs past the end of the file", String::from_utf8_lossy(&kind)))
+        })?;
         out.push((kind, &data[r.pos..end]));
         r.pos = end;
     }
@@ -475,11 +484,8 @@ fn parse_video_trak(path: &Path, mdia: &[u8]) -> Result<Mp4Track> {
     let mut r = Reader { path, data: stsz, pos: 4 };
     let uniform = r.u32("stsz")?;
     let n = r.u32("stsz")? as usize;
-    let sizes = if uniform != 0 {
-        vec![uniform; n]
-    } else {
-        (0..n).map(|_| r.u32("stsz")).collect::<Result<Vec<_>>>()?
-    };
+    let sizes =
+        if uniform != 0 { vec![uniform; n] } else { (0..n).map(|_| r.u32("stsz")).collect::<Result<Vec<_>>>()? };
 
     let chunk_offsets: Vec<u64> = if let Some(stco) = optional_child(path, stbl, b"stco")? {
         let mut r = Reader { path, data: stco, pos: 4 };
@@ -518,7 +524,10 @@ fn parse_video_trak(path: &Path, mdia: &[u8]) -> Result<Mp4Track> {
         }
     }
     if offsets.len() != n || pts.len() != n {
-        return Err(DataError::mp4(path, format!("sample tables disagree: {n} sizes, {} offsets, {} times", offsets.len(), pts.len())));
+        return Err(DataError::mp4(
+            path,
+            format!("sample tables disagree: {n} sizes, {} offsets, {} times", offsets.len(), pts.len()),
+        ));
     }
     let is_sync = match optional_child(path, stbl, b"stss")? {
         None => vec![true; n],

@@ -123,23 +123,20 @@ impl Browser {
         self.session_command("POST", "/execute/sync", json!({ "script": body, "args": [] })).await
     }
 
-    pub async fn click(&self, css: &str) {
+    /// The WebDriver id of the first element matching `css`.
+    async fn element(&self, css: &str) -> String {
         let element = self.session_command("POST", "/element", json!({ "using": "css selector", "value": css })).await;
-        let id = element
-            .as_object()
-            .and_then(|o| o.values().next())
-            .and_then(Value::as_str)
-            .unwrap_or_else(|| panic!("no element {css}: {element}"));
+        let id = element.as_object().and_then(|o| o.values().next()).and_then(Value::as_str);
+        id.unwrap_or_else(|| panic!("no element {css}: {element}")).to_owned()
+    }
+
+    pub async fn click(&self, css: &str) {
+        let id = self.element(css).await;
         self.session_command("POST", &format!("/element/{id}/click"), json!({})).await;
     }
 
     pub async fn type_into(&self, css: &str, text: &str) {
-        let element = self.session_command("POST", "/element", json!({ "using": "css selector", "value": css })).await;
-        let id = element
-            .as_object()
-            .and_then(|o| o.values().next())
-            .and_then(Value::as_str)
-            .unwrap_or_else(|| panic!("no element {css}: {element}"));
+        let id = self.element(css).await;
         self.session_command("POST", &format!("/element/{id}/value"), json!({ "text": text })).await;
     }
 

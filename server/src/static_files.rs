@@ -8,7 +8,10 @@ use std::path::{Component, Path, PathBuf};
 
 use axum::body::Body;
 use axum::extract::State;
-use axum::http::header::{ACCEPT_RANGES, CACHE_CONTROL, CONTENT_LENGTH, CONTENT_RANGE, CONTENT_TYPE, RANGE};
+use axum::http::header::{
+    ACCEPT_ENCODING, ACCEPT_RANGES, CACHE_CONTROL, CONTENT_ENCODING, CONTENT_LENGTH, CONTENT_RANGE, CONTENT_TYPE,
+    RANGE, VARY,
+};
 use axum::http::{HeaderMap, HeaderValue, Method, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
 use percent_encoding::percent_decode_str;
@@ -78,7 +81,18 @@ pub async fn serve(
         }
     };
     let path = state.www_dir.join(relative_path(&relative)?);
-    match file_response(&path, &headers).await {
+    let served = match gzip_sibling(&path, &headers).await {
+        Some(gz) => file_response_as(&gz, content_type(&path), &headers).await.map(|mut response| {
+            response.headers_mut().insert(CONTENT_ENCODING, HeaderValue::from_static("gzip"));
+            response
+        }),
+        None => file_response(&path, &headers).await,
+    };
+    let served = served.map(|mut response| {
+        response.headers_mut().insert(VARY, HeaderValue::from_static("accept-encoding"));
+        response
+    });
+    match served {
         Err(FileError::NotFound(path)) if !tokio::fs::metadata(&*state.www_dir).await.is_ok_and(|m| m.is_dir()) => {
             Err(FileError::NoRoot { path, root: state.www_dir.to_path_buf() })
         }
@@ -97,8 +111,31 @@ pub fn relative_path(relative: &str) -> Result<&Path, FileError> {
     Ok(path)
 }
 
+/// `<path>.gz` when the client takes gzip, asks for the whole file, and the build left a compressed copy that is
+/// not older than the file (client-wasm/build.sh compresses the 37 MB volunteer to 6 MB).
+async fn gzip_sibling(path: &Path, request: &HeaderMap) -> Option<PathBuf> {
+    let accepts_gzip = request
+        .get(ACCEPT_ENCODING)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|coding| coding.split(';').next().is_some_and(|c| c.trim() == "gzip")));
+    if !accepts_gzip || request.contains_key(RANGE) {
+        return None;
+    }
+    let mut name = path.file_name()?.to_owned();
+    name.push(".gz");
+    let gz = path.with_file_name(name);
+    let modified = |p: PathBuf| async move { tokio::fs::metadata(p).await.and_then(|m| m.modified()).ok() };
+    let (original, compressed) = (modified(path.to_owned()).await?, modified(gz.clone()).await?);
+    (compressed >= original).then_some(gz)
+}
+
 /// The file at `path` (or the byte range the request asks for), streamed.
 pub async fn file_response(path: &Path, request: &HeaderMap) -> Result<Response, FileError> {
+    file_response_as(path, content_type(path), request).await
+}
+
+/// [`file_response`] with the given content type (a compressed copy is served as what it decompresses to).
+async fn file_response_as(path: &Path, content_type: &'static str, request: &HeaderMap) -> Result<Response, FileError> {
     let io = |source| FileError::Io { path: path.to_owned(), source };
     let len = match tokio::fs::metadata(path).await {
         Ok(meta) if meta.is_file() => meta.len(),
@@ -117,7 +154,7 @@ pub async fn file_response(path: &Path, request: &HeaderMap) -> Result<Response,
     }
     let response = Response::builder()
         .status(if range.is_some() { StatusCode::PARTIAL_CONTENT } else { StatusCode::OK })
-        .header(CONTENT_TYPE, content_type(path))
+        .header(CONTENT_TYPE, content_type)
         .header(CONTENT_LENGTH, count)
         .header(CACHE_CONTROL, "no-cache")
         .header(ACCEPT_RANGES, "bytes");

@@ -446,6 +446,24 @@ async fn www_dir_pages_with_content_types_and_no_way_out() {
         assert_eq!(refused.status, StatusCode::BAD_REQUEST, "{escape}");
         assert!(!String::from_utf8(refused.body).unwrap().contains("outside www"));
     }
+    // A compressed copy beside a file goes to clients that take gzip, as what it decompresses to.
+    let compressed = b"\x1f\x8b pretend gzip of the wasm";
+    std::fs::write(www.join("pkg/client_bg.wasm.gz"), compressed).unwrap();
+    let gzip = request_with(&handle, "GET", "/pkg/client_bg.wasm", None, &[("accept-encoding", "br, gzip")], "").await;
+    assert_eq!((gzip.header("content-encoding"), gzip.header("content-type")), ("gzip", "application/wasm"));
+    assert_eq!((gzip.body.as_slice(), gzip.header("vary")), (&compressed[..], "accept-encoding"));
+    let plain = request(&handle, "GET", "/pkg/client_bg.wasm", None, "").await;
+    assert_eq!(plain.body, b"contents of pkg/client_bg.wasm", "no accept-encoding, no gzip");
+    let ranged = request_with(
+        &handle,
+        "GET",
+        "/pkg/client_bg.wasm",
+        None,
+        &[("accept-encoding", "gzip"), ("range", "bytes=0-7")],
+        "",
+    )
+    .await;
+    assert_eq!(ranged.body, b"contents", "a range is of the file itself");
     // The API's own routes are not shadowed by the pages.
     assert_eq!(request(&handle, "GET", "/model/0", None, "").await.status, StatusCode::OK);
     handle.kill();

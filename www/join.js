@@ -48,6 +48,12 @@ function show(kind, s) {
       state.down += s.cached ? 0 : s.bytes;
       $("bytes").textContent = `${fmtBytes(state.up)} / ${fmtBytes(state.down)}`;
       $("stage").textContent = `${s.what}: ${fmtBytes(s.bytes)}${s.cached ? " (from the browser cache)" : ""}`;
+      {
+        const item = document.createElement("li");
+        item.textContent = `${s.what}: ${fmtBytes(s.bytes)}, ${s.cached ? "from the browser cache" : "downloaded"}`;
+        item.dataset.cached = s.cached;
+        $("downloads").append(item);
+      }
       break;
     case "device": $("device").textContent = `${s.backend}; ${state.gpu}`; break;
     case "fallback": state.gpu += ` (training on the CPU instead: ${s.reason})`; break;

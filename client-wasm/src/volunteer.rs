@@ -103,8 +103,10 @@ async fn prepare(
 ) -> Result<BrowserTrainer, BoxError> {
     let get = |path: &str| format!("{}{path}", origin.trim_end_matches('/'));
     status.send("stage", json!({ "stage": "setup" }));
+    // The name keeps a returning volunteer on its shard (and so on its cached copy of it).
+    let setup_url = get(&format!("/api/volunteer?name={}", js_sys::encode_uri_component(name)));
     let setup: VolunteerSetup =
-        serde_json::from_slice(&fetch_with_progress(&get("/api/volunteer"), |_, _| {}).await.map_err(boxed)?)?;
+        serde_json::from_slice(&fetch_with_progress(&setup_url, |_, _| {}).await.map_err(boxed)?)?;
     if setup.protocol_version != PROTOCOL_VERSION {
         return Err(format!(
             "the server speaks protocol {}, this page {PROTOCOL_VERSION}: reload the page",
@@ -134,12 +136,9 @@ async fn prepare(
         serde_json::from_slice(&fetch_with_progress(&get(&setup.shard_manifest_url), |_, _| {}).await.map_err(boxed)?)?;
     let shard = download("shard", &setup.shard_url, &format!("/shard/sha256/{}", manifest.file_sha256)).await?;
     verify_shard_bytes(Path::new(&manifest.file), &shard, &manifest)?;
-    let global = download(
-        "global model",
-        &format!("/model/{}", setup.model_version),
-        &format!("/model/{}", setup.model_version),
-    )
-    .await?;
+    // Never cached: versions are numbered per run, so a cached version 3 could be another run's.
+    let global =
+        fetch_with_progress(&get(&format!("/model/{}", setup.model_version)), |_, _| {}).await.map_err(boxed)?;
     status.send("stage", json!({ "stage": "building the model" }));
     yield_to_page().await;
     let downloads = Downloads { setup: &setup, frozen: &frozen, global: &global, shard: &shard, manifest: &manifest };

@@ -67,9 +67,11 @@ impl NativeTransport {
         http_request(&self.authority, hyper::Request::get(path), Bytes::new()).await
     }
 
-    /// What the server offers this volunteer (`GET /api/volunteer`); each call is assigned the next shard.
-    pub async fn fetch_setup(&self) -> Result<VolunteerSetup, BoxError> {
-        let bytes = self.get("/api/volunteer").await?;
+    /// What the server offers volunteer `name` (`GET /api/volunteer?name=`): a new name gets the next shard
+    /// round-robin, a returning one its shard again.
+    pub async fn fetch_setup(&self, name: &str) -> Result<VolunteerSetup, BoxError> {
+        let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
+        let bytes = self.get(&format!("/api/volunteer?name={name}")).await?;
         serde_json::from_slice(&bytes).map_err(|e| format!("GET /api/volunteer: {e}").into())
     }
 

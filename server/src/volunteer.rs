@@ -11,12 +11,13 @@ use std::sync::{Arc, Mutex};
 use axum::Json;
 use axum::Router;
 use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, Path, State};
+use axum::extract::{DefaultBodyLimit, Path, Query, State};
 use axum::http::header::{AUTHORIZATION, CACHE_CONTROL, CONTENT_TYPE};
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use fedvla_federation::{PROTOCOL_VERSION, VolunteerSetup};
+use serde::Deserialize;
 use sha2::{Digest, Sha256};
 
 use crate::app::AppState;
@@ -48,12 +49,14 @@ impl VolunteerOffer {
     }
 }
 
-/// The offer as served: the frozen weights' content tag and the round-robin shard assignment.
+/// The offer as served: the frozen weights' content tag and the shard assignment (round-robin, sticky by name).
 pub struct Volunteers {
     offer: VolunteerOffer,
     /// Hex SHA-256 prefix of the frozen safetensors; part of their URL.
     frozen_tag: Option<String>,
     next_shard: AtomicUsize,
+    /// The shard each named volunteer was given, so a reload or a reconnect keeps its data (and its cache).
+    assigned: Mutex<HashMap<String, usize>>,
 }
 
 impl Volunteers {
@@ -62,7 +65,17 @@ impl Volunteers {
             let digest = Sha256::digest(bytes);
             digest[..8].iter().map(|b| format!("{b:02x}")).collect()
         });
-        Self { offer, frozen_tag, next_shard: AtomicUsize::new(0) }
+        Self { offer, frozen_tag, next_shard: AtomicUsize::new(0), assigned: Mutex::default() }
+    }
+
+    /// The shard of volunteer `name` (the next one round-robin for a new or unnamed volunteer).
+    fn assign(&self, name: Option<&str>) -> usize {
+        let count = self.offer.shards.len().max(1);
+        let next = || self.next_shard.fetch_add(1, Ordering::Relaxed) % count;
+        match name {
+            Some(name) => *self.assigned.lock().expect("assignments lock").entry(name.to_owned()).or_insert_with(next),
+            None => next(),
+        }
     }
 
     fn shard_path(&self, index: usize) -> Result<&PathBuf, ServerError> {
@@ -102,11 +115,17 @@ pub fn routes() -> Router<AppState> {
         .route("/rollout/{round}/{file}", post(post_video).layer(DefaultBodyLimit::max(MAX_VIDEO_BYTES)))
 }
 
-/// The setup of a new volunteer; each call assigns the next shard.
-async fn get_setup(State(state): State<AppState>) -> Json<VolunteerSetup> {
+/// Who asks for a setup.
+#[derive(Deserialize)]
+struct SetupQuery {
+    name: Option<String>,
+}
+
+/// The setup of a volunteer (`?name=` keeps a returning one on its shard).
+async fn get_setup(State(state): State<AppState>, Query(query): Query<SetupQuery>) -> Json<VolunteerSetup> {
     let v = &state.volunteers;
     let count = v.offer.shards.len();
-    let index = if count == 0 { 0 } else { v.next_shard.fetch_add(1, Ordering::Relaxed) % count };
+    let index = v.assign(query.name.as_deref());
     Json(VolunteerSetup {
         protocol_version: PROTOCOL_VERSION,
         workload: v.offer.workload.clone(),

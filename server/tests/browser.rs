@@ -52,7 +52,7 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
     std::thread::spawn(move || {
         tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
             let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
-            let setup = transport.fetch_setup().await.unwrap();
+            let setup = transport.fetch_setup("native-0").await.unwrap();
             let mut trainer = smolvla_volunteer(&transport, &setup, "native-0").await.unwrap();
             let options = ClientOptions { name: "native-0".into(), auth_token: None };
             run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap();
@@ -195,8 +195,22 @@ async fn a_browser_reloaded_mid_round_does_not_stall_the_round_and_rejoins() {
     let walked_out = client_record(&run_dir, 1, "browser-reload");
     assert_eq!(walked_out["accepted"], false, "the reloaded page's round-1 update never came: {walked_out}");
     assert_eq!(client_record(&run_dir, 1, "native-0")["accepted"], true);
-    // Round 2 needs two connected clients: it runs only because the reloaded page rejoined by itself.
+    // Round 2 needs two connected clients: it runs only because the reloaded page rejoined by itself, and the
+    // rejoined page took the frozen weights and its shard from the browser's cache.
     wait_rounds(&handle, 2).await;
+    let downloads =
+        browser.eval("return [...document.querySelectorAll('#downloads li')].map(li => li.textContent)").await;
+    for what in ["frozen weights", "shard"] {
+        assert!(
+            downloads
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|d| d.as_str().unwrap().starts_with(what)
+                    && d.as_str().unwrap().ends_with("from the browser cache")),
+            "{what} not from the cache after the reload: {downloads}"
+        );
+    }
     native.join().unwrap();
     assert_eq!(client_record(&run_dir, 2, "browser-reload")["accepted"], true);
     let errors = browser.page_errors().await;

@@ -212,6 +212,12 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
         let shard = fedvla_data::ClientShard::from_bytes(Path::new(&manifest.file), &bytes).unwrap();
         assert_eq!(shard.manifest.client_index, index);
     }
+    // Shards are assigned round-robin by volunteer name, and a returning name keeps its shard.
+    let mut assigned = Vec::new();
+    for name in ["ann", "bob", "cy", "dee", "bob", "ann"] {
+        assigned.push(transport.fetch_setup(name).await.unwrap().shard_index);
+    }
+    assert_eq!(assigned, [0, 1, 2, 0, 1, 0]);
     let missing = transport.fetch_shard(3).await.unwrap_err().to_string();
     assert!(missing.contains("404") && missing.contains("no shard 3"), "{missing}");
     handle.kill();

@@ -11,7 +11,8 @@ use tracing_subscriber::filter::LevelFilter;
 pub struct Args {
     /// Server address: ws://host:port or http://host:port.
     url: String,
-    /// Name shown to the server (defaults to native-<shard>).
+    /// Name shown to the server; the same name gets the same shard back after a restart (defaults to a random
+    /// native-XXXXXX).
     #[arg(long)]
     name: Option<String>,
     /// Train on this shard instead of the one the server assigns.
@@ -26,16 +27,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     super::init_tracing(None, LevelFilter::INFO);
     super::runtime()?.block_on(async move {
         let mut transport = NativeTransport::connect(&args.url).await.map_err(super::boxed)?;
-        let mut setup = transport.fetch_setup().await.map_err(super::boxed)?;
+        let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_server::console::random_token()[..6]));
+        let mut setup = transport.fetch_setup(&name).await.map_err(super::boxed)?;
         if let Some(shard) = args.shard {
             setup.shard_index = shard;
             setup.shard_url = format!("/shard/{shard}");
             setup.shard_manifest_url = format!("/shard/{shard}/manifest");
         }
-        let options = ClientOptions {
-            name: args.name.unwrap_or_else(|| format!("native-{}", setup.shard_index)),
-            auth_token: args.auth_token,
-        };
+        let options = ClientOptions { name, auth_token: args.auth_token };
         tracing::info!(workload = %setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
         match setup.workload.as_str() {
             // The linreg shard is generated from its index (the partitioning only changes the data skew).

@@ -20,6 +20,9 @@ use crate::coordinator::{Event, UpdateReceived};
 
 /// A connection that has not joined by then is closed.
 const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
+/// A ping this often keeps an idle connection (a volunteer waiting for its next round) open through proxies that
+/// close silent ones; browsers and tungstenite answer pings by themselves.
+const KEEPALIVE: Duration = Duration::from_secs(20);
 
 /// Serves one connection until the client leaves, a fatal error, or shutdown.
 pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: AppState)
@@ -35,6 +38,7 @@ where
         return;
     };
     let client_id = conn.client_id.expect("joined");
+    let mut keepalive = tokio::time::interval_at(tokio::time::Instant::now() + KEEPALIVE, KEEPALIVE);
     loop {
         // Biased: messages the coordinator queued (e.g. `Finished`) go out before a shutdown closes the socket.
         let flow = tokio::select! {
@@ -47,6 +51,7 @@ where
                 conn.send(&ServerMessage::Error { code: ErrorCode::ShuttingDown, message: "server shutting down".into() }).await;
                 Flow::Close
             }
+            _ = keepalive.tick() => conn.ping().await,
             frame = stream.next() => match frame {
                 Some(Ok(Message::Text(text))) => conn.on_text(text.as_str()).await,
                 Some(Ok(Message::Binary(data))) => conn.on_binary(&data).await,
@@ -312,6 +317,13 @@ where
         }
     }
 
+    async fn ping(&mut self) -> Flow {
+        match self.sink.send(Message::Ping(Default::default())).await {
+            Ok(()) => Flow::Continue,
+            Err(_) => Flow::Gone,
+        }
+    }
+
     async fn close(&mut self) {
         self.sink.send(Message::Close(None)).await.ok();
     }
@@ -460,6 +472,18 @@ mod tests {
         assert!(matches!(h.recv().await, Message::Close(_)));
         assert!(matches!(h.events.recv().await, Some(Event::Left { client_id: 7 })));
         h.task.await.unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn an_idle_connection_is_pinged_to_keep_it_open() {
+        let mut h = Harness::new();
+        h.join(Some("secret"));
+        assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 7, .. }));
+        // The coordinator's end of the outbox stays open: a closed one ends the connection.
+        let Some(Event::Joined { client_id: 7, outbox: _outbox, .. }) = h.events.recv().await else { panic!("joined") };
+        tokio::time::advance(KEEPALIVE + Duration::from_secs(1)).await;
+        let message = h.recv().await;
+        assert!(matches!(message, Message::Ping(_)), "a ping after {KEEPALIVE:?} of silence, got {message:?}");
     }
 
     #[tokio::test]

@@ -18,16 +18,19 @@ function volunteerName() {
   return name;
 }
 
+// The WebGPU adapter in words, and its storage buffer limit (0 without an adapter) for the volunteer to check
+// against the model's largest tensor.
 async function describeWebGpu() {
-  if (!navigator.gpu) return "WebGPU not available in this browser";
+  if (!navigator.gpu) return ["WebGPU not available in this browser", 0];
   try {
     const adapter = await navigator.gpu.requestAdapter();
-    if (!adapter) return "WebGPU refused an adapter";
+    if (!adapter) return ["WebGPU refused an adapter", 0];
     const info = adapter.info || {};
     const what = [info.vendor, info.architecture, info.description].filter(Boolean).join(" ") || "unnamed adapter";
-    return `WebGPU adapter present (${what}${adapter.isFallbackAdapter ? ", software fallback" : ""})`;
+    const limit = adapter.limits.maxStorageBufferBindingSize;
+    return [`WebGPU adapter present (${what}${adapter.isFallbackAdapter ? ", software fallback" : ""}, storage buffers up to ${fmtBytes(limit)})`, limit];
   } catch (e) {
-    return "WebGPU refused: " + e;
+    return ["WebGPU refused: " + e, 0];
   }
 }
 
@@ -92,7 +95,8 @@ function show(kind, s) {
 
 async function volunteer() {
   $("status").hidden = false;
-  state.gpu = await describeWebGpu();
+  const [gpu, maxBuffer] = await describeWebGpu();
+  state.gpu = gpu;
   $("device").textContent = state.gpu;
   await init();
   const name = volunteerName();
@@ -101,7 +105,7 @@ async function volunteer() {
     $("message").textContent = "";
     $("message").className = "";
     try {
-      await run_volunteer(location.origin, name, $("rollout"), (json) => {
+      await run_volunteer(location.origin, name, $("rollout"), maxBuffer, (json) => {
         const status = JSON.parse(json);
         show(status.kind, status);
       });

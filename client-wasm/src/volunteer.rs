@@ -14,7 +14,7 @@ use fedvla_federation::{
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::rollout::Episode;
 use fedvla_learner::trainer::rollout_episode;
-use fedvla_learner::volunteer::{Downloads, volunteer_trainer};
+use fedvla_learner::volunteer::{Downloads, policy_config, volunteer_trainer};
 use serde_json::json;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
@@ -41,10 +41,20 @@ pub async fn webgpu_device() -> Result<Device, String> {
     result
 }
 
-/// The training device (WebGPU when the browser gives an adapter, else burn's CPU backend in wasm), with the
-/// name the server's client table and the page show.
-async fn training_device(status: &StatusSink) -> (Device, String) {
-    match webgpu_device().await {
+/// The training device (WebGPU when the browser gives an adapter whose storage buffers hold the model's largest
+/// tensor, `largest_tensor_bytes`, against the adapter's `max_buffer_bytes` limit; else burn's CPU backend in
+/// wasm), with the name the server's client table and the page show.
+async fn training_device(status: &StatusSink, max_buffer_bytes: f64, largest_tensor_bytes: usize) -> (Device, String) {
+    let gpu = if max_buffer_bytes > 0.0 && (largest_tensor_bytes as f64) > max_buffer_bytes {
+        Err(format!(
+            "the model's largest tensor ({:.0} MB) exceeds this adapter's storage buffer limit ({:.0} MB)",
+            largest_tensor_bytes as f64 / 1e6,
+            max_buffer_bytes / 1e6
+        ))
+    } else {
+        webgpu_device().await
+    };
+    match gpu {
         Ok(device) => (device.autodiff(), "webgpu".to_owned()),
         Err(reason) => {
             status.send("fallback", json!({ "reason": reason }));
@@ -65,18 +75,21 @@ fn boxed(e: JsValue) -> BoxError {
 }
 
 /// Joins the federation served at `origin` as `name`, drawing rollouts on `canvas` and reporting every change to
-/// `on_status` (one JSON string per call). Resolves with the run's summary when the server finishes the run;
-/// rejects with a message when anything fails (the page shows it and reconnects).
+/// `on_status` (one JSON string per call). `max_buffer_bytes` is the WebGPU adapter's
+/// `maxStorageBufferBindingSize` (0 when the page found no adapter). Resolves with the run's summary when the
+/// server finishes the run; rejects with a message when anything fails (the page shows it and reconnects).
 #[wasm_bindgen]
 pub async fn run_volunteer(
     origin: String,
     name: String,
     canvas: HtmlCanvasElement,
+    max_buffer_bytes: f64,
     on_status: js_sys::Function,
 ) -> Result<JsValue, JsValue> {
     let status = StatusSink::new(on_status);
     let started = now_seconds();
-    let mut trainer = prepare(&origin, &name, canvas, &status).await.map_err(|e| js_error(format!("{e}")))?;
+    let mut trainer =
+        prepare(&origin, &name, canvas, max_buffer_bytes, &status).await.map_err(|e| js_error(format!("{e}")))?;
     trainer.started = started;
     let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
     let options = ClientOptions { name: name.clone(), auth_token: None };
@@ -99,6 +112,7 @@ async fn prepare(
     origin: &str,
     name: &str,
     canvas: HtmlCanvasElement,
+    max_buffer_bytes: f64,
     status: &StatusSink,
 ) -> Result<BrowserTrainer, BoxError> {
     let get = |path: &str| format!("{}{path}", origin.trim_end_matches('/'));
@@ -142,7 +156,8 @@ async fn prepare(
     status.send("stage", json!({ "stage": "building the model" }));
     yield_to_page().await;
     let downloads = Downloads { setup: &setup, frozen: &frozen, global: &global, shard: &shard, manifest: &manifest };
-    let (device, backend) = training_device(status).await;
+    let largest_tensor = policy_config(&setup)?.param_specs().iter().map(|p| p.numel() * 4).max().unwrap_or(0);
+    let (device, backend) = training_device(status, max_buffer_bytes, largest_tensor).await;
     status.send("device", json!({ "backend": backend }));
     let inner = volunteer_trainer(&downloads, name, &device, &backend)?;
     let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;

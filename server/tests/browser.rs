@@ -218,3 +218,32 @@ async fn a_browser_reloaded_mid_round_does_not_stall_the_round_and_rejoins() {
     browser.quit().await;
     handle.finish().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_browser_with_a_webgpu_adapter_trains_its_round_on_it() {
+    if let Some(why) = missing_prerequisite() {
+        eprintln!("SKIPPED: {why}");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    // SwiftShader takes seconds per step: one step of the tiny model at batch 1, the browser alone.
+    let overrides = "num-server-rounds=1 min-clients=1 min-fit=1 local-steps=1 batch-size=1 client-rollout-episodes=0 \
+                     round-deadline-ms=290000";
+    let (handle, run_dir) = start_server(tmp.path(), overrides).await;
+    let browser = Browser::launch(&["--enable-unsafe-webgpu"]).await;
+    browser.goto(&format!("http://{}/?name=browser-webgpu", handle.addr())).await;
+    browser.click("#consent").await;
+    browser.click("#join").await;
+    let device = browser
+        .wait_for("the device line", Duration::from_secs(120), "return document.getElementById('device').textContent.startsWith('webgpu') && document.getElementById('device').textContent")
+        .await;
+    eprintln!("browser device: {device}");
+    wait_rounds(&handle, 1).await;
+    let record = client_record(&run_dir, 1, "browser-webgpu");
+    assert_eq!(record["accepted"], true, "{record}");
+    assert!(record["train_loss"].as_f64().is_some_and(f64::is_finite), "{record}");
+    let errors = browser.page_errors().await;
+    assert!(errors.is_empty(), "JavaScript errors on the join page: {errors:?}");
+    browser.quit().await;
+    handle.finish().await.unwrap();
+}

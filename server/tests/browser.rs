@@ -60,6 +60,15 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
     })
 }
 
+/// A fresh Chromium (with `chromium_args`) on the join page as volunteer `name`, consent given and Join pressed.
+async fn volunteer_page(handle: &ServerHandle, name: &str, chromium_args: &[&str]) -> Browser {
+    let browser = Browser::launch(chromium_args).await;
+    browser.goto(&format!("http://{}/?name={name}", handle.addr())).await;
+    browser.click("#consent").await;
+    browser.click("#join").await;
+    browser
+}
+
 fn metrics(run_dir: &RunDir) -> Vec<Value> {
     std::fs::read_to_string(run_dir.path().join(METRICS_FILE))
         .unwrap()
@@ -101,10 +110,7 @@ async fn a_browser_trains_a_round_beside_a_native_client_uploads_its_rollout_and
     let base = format!("http://{}", handle.addr());
     let native = native_volunteer(handle.addr());
 
-    let browser = Browser::launch(&[]).await;
-    browser.goto(&format!("{base}/?name=browser-e2e")).await;
-    browser.click("#consent").await;
-    browser.click("#join").await;
+    let browser = volunteer_page(&handle, "browser-e2e", &[]).await;
     let device = browser.wait_for("the device line", Duration::from_secs(120), "return document.getElementById('device').textContent.includes('wasm') && document.getElementById('device').textContent").await;
     eprintln!("browser device: {device}");
     browser
@@ -181,12 +187,8 @@ async fn a_browser_reloaded_mid_round_does_not_stall_the_round_and_rejoins() {
         "num-server-rounds=2 min-fit=1 local-steps=40 client-rollout-episodes=0 round-deadline-ms=240000",
     )
     .await;
-    let base = format!("http://{}", handle.addr());
     let native = native_volunteer(handle.addr());
-    let browser = Browser::launch(&[]).await;
-    browser.goto(&format!("{base}/?name=browser-reload")).await;
-    browser.click("#consent").await;
-    browser.click("#join").await;
+    let browser = volunteer_page(&handle, "browser-reload", &[]).await;
     browser
         .wait_for("training in round 1", Duration::from_secs(240), "return document.getElementById('round').textContent === '1' && document.getElementById('stage').textContent === 'training'")
         .await;
@@ -230,10 +232,7 @@ async fn a_browser_with_a_webgpu_adapter_trains_its_round_on_it() {
     let overrides = "num-server-rounds=1 min-clients=1 min-fit=1 local-steps=1 batch-size=1 client-rollout-episodes=0 \
                      round-deadline-ms=290000";
     let (handle, run_dir) = start_server(tmp.path(), overrides).await;
-    let browser = Browser::launch(&["--enable-unsafe-webgpu"]).await;
-    browser.goto(&format!("http://{}/?name=browser-webgpu", handle.addr())).await;
-    browser.click("#consent").await;
-    browser.click("#join").await;
+    let browser = volunteer_page(&handle, "browser-webgpu", &["--enable-unsafe-webgpu"]).await;
     let device = browser
         .wait_for("the device line", Duration::from_secs(120), "return document.getElementById('device').textContent.startsWith('webgpu') && document.getElementById('device').textContent")
         .await;

@@ -176,41 +176,28 @@ fn layout_matches_lerobot_v30() {
         assert_eq!(cam["info"]["has_audio"], false);
         assert_eq!(cam["info"]["is_depth_map"], false);
     }
+    // LeRobot's order of the features in info.json: the recorded ones, then the five index columns.
+    const FEATURE_ORDER: [&str; 9] = [
+        "action",
+        "observation.state",
+        "observation.images.top",
+        "observation.images.wrist",
+        "timestamp",
+        "frame_index",
+        "episode_index",
+        "index",
+        "task_index",
+    ];
     let order: Vec<String> = {
         let text = std::fs::read_to_string(root.join("meta/info.json")).expect("info.json");
-        let feature_names = [
-            "action",
-            "observation.state",
-            "observation.images.top",
-            "observation.images.wrist",
-            "timestamp",
-            "frame_index",
-            "episode_index",
-            "index",
-            "task_index",
-        ];
-        let mut found: Vec<(usize, String)> = feature_names
+        let mut found: Vec<(usize, String)> = FEATURE_ORDER
             .iter()
             .map(|n| (text.find(&format!("\"{n}\": {{")).expect("feature present"), n.to_string()))
             .collect();
         found.sort();
         found.into_iter().map(|(_, n)| n).collect()
     };
-    assert_eq!(
-        order,
-        [
-            "action",
-            "observation.state",
-            "observation.images.top",
-            "observation.images.wrist",
-            "timestamp",
-            "frame_index",
-            "episode_index",
-            "index",
-            "task_index"
-        ],
-        "feature order"
-    );
+    assert_eq!(order, FEATURE_ORDER, "feature order");
 
     // meta/stats.json: every feature, each with the ten statistics; images per channel as [3][1][1].
     let stats: Value =

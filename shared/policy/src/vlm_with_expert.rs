@@ -10,7 +10,7 @@
 
 use burn::tensor::{Int, Tensor, TensorData};
 
-use crate::config::{EXPERT_PREFIX, SmolVlaConfig, TEXT_PREFIX};
+use crate::config::{EXPERT_PREFIX, SmolVlaConfig, TEXT_PREFIX, TextConfig};
 use crate::layers::{DecoderLayer, Linear, RmsNorm, Rope, attention, bool_tensor};
 use crate::vision::{Connector, VisionTower};
 use crate::weights::ParamStore;
@@ -26,6 +26,17 @@ pub struct Vlm {
     hidden: usize,
 }
 
+/// The `count` decoder layers `{prefix}.layers.{n}`, with the text config's heads and norm epsilon (the expert
+/// shares them with the VLM; widths come from the weights).
+fn load_layers(store: &ParamStore, prefix: &str, count: usize, t: &TextConfig) -> Vec<DecoderLayer> {
+    (0..count)
+        .map(|n| {
+            let p = format!("{prefix}.layers.{n}");
+            DecoderLayer::load(store, &p, t.rms_norm_eps, t.num_attention_heads, t.num_key_value_heads, t.head_dim)
+        })
+        .collect()
+}
+
 impl Vlm {
     pub fn load(store: &ParamStore, cfg: &SmolVlaConfig) -> Self {
         let t = &cfg.vlm.text_config;
@@ -33,19 +44,7 @@ impl Vlm {
             vision: VisionTower::load(store, &cfg.vlm.vision_config),
             connector: Connector::load(store, cfg),
             embed_tokens: store.get(&format!("{TEXT_PREFIX}.embed_tokens.weight")),
-            layers: (0..cfg.num_vlm_layers)
-                .map(|n| {
-                    let p = format!("{TEXT_PREFIX}.layers.{n}");
-                    DecoderLayer::load(
-                        store,
-                        &p,
-                        t.rms_norm_eps,
-                        t.num_attention_heads,
-                        t.num_key_value_heads,
-                        t.head_dim,
-                    )
-                })
-                .collect(),
+            layers: load_layers(store, TEXT_PREFIX, cfg.num_vlm_layers, t),
             norm: RmsNorm::load(store, &format!("{TEXT_PREFIX}.norm"), t.rms_norm_eps),
             hidden: t.hidden_size,
         }
@@ -185,19 +184,7 @@ impl ActionExpert {
         let t = &cfg.vlm.text_config;
         let lin = |n: &str| Linear::load(store, &format!("model.{n}"), true);
         Self {
-            layers: (0..cfg.expert().num_layers)
-                .map(|n| {
-                    let p = format!("{EXPERT_PREFIX}.layers.{n}");
-                    DecoderLayer::load(
-                        store,
-                        &p,
-                        t.rms_norm_eps,
-                        t.num_attention_heads,
-                        t.num_key_value_heads,
-                        t.head_dim,
-                    )
-                })
-                .collect(),
+            layers: load_layers(store, EXPERT_PREFIX, cfg.expert().num_layers, t),
             self_attn: (0..cfg.expert().num_layers).map(|n| cfg.is_self_attn_layer(n)).collect(),
             norm: RmsNorm::load(store, &format!("{EXPERT_PREFIX}.norm"), t.rms_norm_eps),
             state_proj: lin("state_proj"),

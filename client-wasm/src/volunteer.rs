@@ -88,9 +88,9 @@ pub async fn run_volunteer(
 ) -> Result<JsValue, JsValue> {
     let status = StatusSink::new(on_status);
     let started = now_seconds();
-    let mut trainer =
-        prepare(&origin, &name, canvas, max_buffer_bytes, &status).await.map_err(|e| js_error(format!("{e}")))?;
-    trainer.started = started;
+    let mut trainer = prepare(&origin, &name, canvas, max_buffer_bytes, started, &status)
+        .await
+        .map_err(|e| js_error(format!("{e}")))?;
     let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
     let options = ClientOptions { name: name.clone(), auth_token: None };
     let sink = status.clone();
@@ -113,6 +113,7 @@ async fn prepare(
     name: &str,
     canvas: HtmlCanvasElement,
     max_buffer_bytes: f64,
+    started: f64,
     status: &StatusSink,
 ) -> Result<BrowserTrainer, BoxError> {
     let get = |path: &str| format!("{}{path}", origin.trim_end_matches('/'));
@@ -161,7 +162,7 @@ async fn prepare(
     status.send("device", json!({ "backend": backend }));
     let inner = volunteer_trainer(&downloads, name, &device, &backend)?;
     let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;
-    Ok(BrowserTrainer { inner, status: status.clone(), view, started: 0.0, first_step_reported: false })
+    Ok(BrowserTrainer { inner, status: status.clone(), view, started, first_step_reported: false })
 }
 
 /// The shared SmolVLA trainer with the page's progress and an in-page, filmed sim.

@@ -423,8 +423,8 @@ impl Running {
             Event::RolloutResult { client_id, round: r, model_version, episodes } => {
                 if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
                     let record = rollout_record(model_version, &episodes);
-                    let dir = self.c.run_dir.client_eval_dir(r, client_id);
-                    if let Err(e) = write_rollout_results(&dir, &record) {
+                    // Small: written on the coordinator's task.
+                    if let Err(e) = self.c.run_dir.write_client_results(r, client_id, &record) {
                         tracing::warn!(client_id, round = r, error = %e, "client rollout results not stored");
                     }
                     tracing::info!(client_id, round = r, success_rate = %record["success_rate"], "client rolled out the global model");
@@ -550,14 +550,6 @@ fn rollout_record(model_version: u64, episodes: &[RolloutEpisode]) -> serde_json
     let successes = episodes.iter().filter(|e| e.success).count();
     let success_rate = if episodes.is_empty() { None } else { Some(successes as f64 / episodes.len() as f64) };
     json!({ "model_version": model_version, "episodes": episodes, "success_rate": success_rate })
-}
-
-/// `evaluate/round_N/client_K/results.json`, written whole then renamed (small, so on the coordinator's task).
-fn write_rollout_results(dir: &std::path::Path, record: &serde_json::Value) -> std::io::Result<()> {
-    std::fs::create_dir_all(dir)?;
-    let tmp = dir.join("results.json.partial");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(record).expect("json"))?;
-    std::fs::rename(tmp, dir.join("results.json"))
 }
 
 /// splitmix64 of `a` combined with `b`: seeds derived per round, attempt and client.

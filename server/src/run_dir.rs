@@ -134,6 +134,18 @@ impl RunDir {
         self.path.join(EVALUATE_DIR).join(format!("round_{round}")).join(format!("client_{client_id}"))
     }
 
+    /// Writes client `client_id`'s rollout results of round `round` as `evaluate/round_N/client_K/results.json`.
+    pub fn write_client_results(
+        &self,
+        round: u64,
+        client_id: u64,
+        results: &serde_json::Value,
+    ) -> Result<(), RunDirError> {
+        let dir = self.client_eval_dir(round, client_id);
+        fs::create_dir_all(&dir).map_err(io(&dir))?;
+        write_atomic(&dir.join("results.json"), &serde_json::to_vec_pretty(results).expect("JSON values serialize"))
+    }
+
     pub fn model_dir(&self, round: u64) -> PathBuf {
         self.path.join(MODELS_DIR).join(format!("round_{round}"))
     }

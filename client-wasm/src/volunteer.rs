@@ -92,7 +92,7 @@ pub async fn run_volunteer(
         .await
         .map_err(|e| js_error(format!("{e}")))?;
     let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
-    let options = ClientOptions { name: name.clone(), auth_token: None };
+    let options = ClientOptions { name: name.clone(), auth_token: None, shard: Some(trainer.shard_index) };
     let sink = status.clone();
     let summary = run_client(&mut transport, &mut trainer, &options, move |event| report(&sink, event))
         .await
@@ -162,12 +162,21 @@ async fn prepare(
     status.send("device", json!({ "backend": backend }));
     let inner = volunteer_trainer(&downloads, name, &device, &backend)?;
     let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;
-    Ok(BrowserTrainer { inner, status: status.clone(), view, started, first_step_reported: false })
+    Ok(BrowserTrainer {
+        inner,
+        shard_index: setup.shard_index,
+        status: status.clone(),
+        view,
+        started,
+        first_step_reported: false,
+    })
 }
 
 /// The shared SmolVLA trainer with the page's progress and an in-page, filmed sim.
 struct BrowserTrainer {
     inner: SmolVlaTrainer,
+    /// The shard the setup assigned, announced on join.
+    shard_index: u32,
     status: StatusSink,
     view: CanvasView,
     /// When `run_volunteer` started, for the time-to-first-step figure.

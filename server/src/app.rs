@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::AtomicU64;
+use std::time::Duration;
 
 use axum::Router;
 use axum::body::Bytes;
@@ -41,10 +41,11 @@ pub struct AppState {
     pub cancel: CancellationToken,
     pub spec: Arc<TensorSpec>,
     pub limits: UpdateLimits,
+    /// How often an idle WebSocket is pinged (well within the listener's idle timeout).
+    pub keepalive: Duration,
     /// Token clients must present on join; `None` means no authentication.
     pub auth_token: Option<Arc<str>>,
-    pub next_client_id: Arc<AtomicU64>,
-    /// What volunteers download: setup, shards, frozen weights.
+    /// What volunteers download (setup, shards, frozen weights), and who trains on which shard.
     pub volunteers: Arc<Volunteers>,
     /// Session tokens of connected clients, for their uploads.
     pub sessions: Sessions,

@@ -70,6 +70,12 @@ pub struct RunConfig {
     pub partitioning: Partitioning,
     pub model_size: String,
     pub init_policy: String,
+    pub freeze_vision_encoder: bool,
+    pub train_expert_only: bool,
+    pub image_size: usize,
+    pub patch_size: usize,
+    pub chunk_size: usize,
+    pub n_action_steps: usize,
     pub eval_every: u64,
     pub rollout_episodes: usize,
     pub client_rollout_episodes: u32,
@@ -79,6 +85,10 @@ pub struct RunConfig {
     pub max_frame_bytes: usize,
     pub auth_token: String,
     pub operator_token: String,
+    pub max_connections: usize,
+    pub header_read_timeout_ms: u64,
+    pub idle_timeout_ms: u64,
+    pub max_volunteer_names: usize,
     pub auto_start: bool,
     pub www_dir: String,
     pub output_dir: String,
@@ -141,6 +151,11 @@ impl RunConfig {
         Ok(cfg)
     }
 
+    /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
+    pub fn sampled_clients(&self, connected: usize) -> usize {
+        ((self.fraction_fit * connected as f64).ceil() as usize).max(self.min_fit).min(connected)
+    }
+
     pub fn validate(&self) -> Result<(), ConfigError> {
         let fail = |m: String| Err(ConfigError::Invalid(m));
         if !(self.fraction_fit > 0.0 && self.fraction_fit <= 1.0) {
@@ -166,6 +181,12 @@ impl RunConfig {
         }
         if self.round_deadline_ms == 0 {
             return fail("round-deadline-ms must be at least 1".into());
+        }
+        if self.max_connections == 0 || self.max_volunteer_names == 0 {
+            return fail("max-connections and max-volunteer-names must be at least 1".into());
+        }
+        if self.header_read_timeout_ms == 0 || self.idle_timeout_ms < 1000 {
+            return fail("header-read-timeout-ms must be at least 1 and idle-timeout-ms at least 1000".into());
         }
         if self.max_frame_bytes <= fedvla_federation::codec::HEADER_LEN {
             return fail(format!("max-frame-bytes must exceed {}", fedvla_federation::codec::HEADER_LEN));

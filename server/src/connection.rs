@@ -4,7 +4,6 @@
 
 use std::fmt::Display;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use axum::extract::ws::Message;
@@ -16,13 +15,12 @@ use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
 
 use crate::app::AppState;
+use crate::console::same_secret;
 use crate::coordinator::{Event, UpdateReceived};
+use crate::volunteer;
 
 /// A connection that has not joined by then is closed.
 const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
-/// A ping this often keeps an idle connection (a volunteer waiting for its next round) open through proxies that
-/// close silent ones; browsers and tungstenite answer pings by themselves.
-const KEEPALIVE: Duration = Duration::from_secs(20);
 
 /// Serves one connection until the client leaves, a fatal error, or shutdown.
 pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: AppState)
@@ -38,7 +36,10 @@ where
         return;
     };
     let client_id = conn.client_id.expect("joined");
-    let mut keepalive = tokio::time::interval_at(tokio::time::Instant::now() + KEEPALIVE, KEEPALIVE);
+    // A ping keeps an idle connection (a volunteer waiting for its next round) open through proxies that close
+    // silent ones, and through the listener's idle timeout; browsers and tungstenite answer pings by themselves.
+    let every = conn.state.keepalive;
+    let mut keepalive = tokio::time::interval_at(tokio::time::Instant::now() + every, every);
     loop {
         // Biased: messages the coordinator queued (e.g. `Finished`) go out before a shutdown closes the socket.
         let flow = tokio::select! {
@@ -137,8 +138,8 @@ where
                 }
             },
         };
-        let (name, capabilities) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
-            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities }) => {
+        let (name, capabilities, shard) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
+            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities, shard }) => {
                 if protocol_version != PROTOCOL_VERSION {
                     let message =
                         format!("client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}");
@@ -146,12 +147,12 @@ where
                     return None;
                 }
                 if let Some(expected) = &self.state.auth_token
-                    && auth_token.as_deref() != Some(expected)
+                    && !auth_token.as_deref().is_some_and(|token| same_secret(token, expected))
                 {
                     self.refuse(ErrorCode::Unauthorized, "missing or wrong auth token".into()).await;
                     return None;
                 }
-                (name, capabilities)
+                (name, capabilities, shard)
             }
             Ok(other) => {
                 self.refuse(ErrorCode::UnexpectedMessage, format!("the first message must be a join, got {other:?}"))
@@ -163,11 +164,22 @@ where
                 return None;
             }
         };
-        let client_id = self.state.next_client_id.fetch_add(1, Ordering::Relaxed);
+        let (client_id, shard, persist) = match self.state.volunteers.join(&name, shard) {
+            Ok(joined) => joined,
+            Err(e) => {
+                self.refuse(e.code(), e.to_string()).await;
+                return None;
+            }
+        };
+        if persist && let Err(e) = volunteer::persist(&self.state.volunteers).await {
+            tracing::error!(error = %e, "the volunteer registry could not be saved; refusing the join");
+            self.refuse(ErrorCode::ShuttingDown, "the server cannot save its volunteer registry".into()).await;
+            return None;
+        }
         self.client_id = Some(client_id);
         let (outbox, inbox) = mpsc::unbounded_channel();
-        tracing::info!(client_id, %name, backend = %capabilities.backend, "client joined");
-        let joined = Event::Joined { client_id, name, capabilities, outbox };
+        tracing::info!(client_id, %name, shard = ?shard.map(|s| s.index), backend = %capabilities.backend, "client joined");
+        let joined = Event::Joined { client_id, name, capabilities, shard, outbox };
         if self.state.events.send(joined).await.is_err() {
             return None;
         }
@@ -274,7 +286,7 @@ where
                 let update = UpdateReceived {
                     round: header.round,
                     tensors,
-                    examples: header.examples,
+                    claimed_examples: header.examples,
                     train_loss: header.train_loss,
                     bytes,
                 };
@@ -332,7 +344,6 @@ where
 #[cfg(test)]
 mod tests {
     use std::convert::Infallible;
-    use std::sync::atomic::AtomicU64;
 
     use axum::body::Bytes;
     use fedvla_federation::codec::{DEFAULT_MAX_FRAME_BYTES, encode_payload, encode_update};
@@ -347,7 +358,9 @@ mod tests {
     use crate::console::ConsoleHub;
     use crate::coordinator::RunStatus;
     use crate::run_dir::RunDir;
-    use crate::volunteer::{Sessions, VolunteerOffer, Volunteers};
+    use crate::volunteer::{Sessions, ShardOffer, VolunteerOffer, Volunteers};
+
+    const KEEPALIVE: Duration = Duration::from_secs(20);
 
     fn tensors(bias: f32) -> NamedTensors {
         let mut t = NamedTensors::new();
@@ -375,17 +388,23 @@ mod tests {
             let run_base = tempfile::tempdir().unwrap();
             let spec = tensors(0.0).spec();
             let (_model_tx, model) = watch::channel(Arc::new(PublishedModel { version: 0, safetensors: Bytes::new() }));
+            let run_dir = RunDir::create(run_base.path(), &RunConfig::default()).unwrap();
+            let offer = VolunteerOffer {
+                workload: "linreg".into(),
+                shards: vec![ShardOffer { file: None, train_examples: 5 }],
+                ..VolunteerOffer::default()
+            };
             let state = AppState {
                 events: events_tx,
                 model,
                 cancel: cancel.clone(),
                 limits: UpdateLimits::for_spec(&spec, DEFAULT_MAX_FRAME_BYTES, 0),
+                keepalive: KEEPALIVE,
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
-                next_client_id: Arc::new(AtomicU64::new(7)),
-                volunteers: Arc::new(Volunteers::new(VolunteerOffer::bare("linreg"))),
+                volunteers: Arc::new(Volunteers::new(offer, run_dir.clone(), 16).unwrap()),
                 sessions: Sessions::default(),
-                run_dir: RunDir::create(run_base.path(), &RunConfig::default()).unwrap(),
+                run_dir,
                 console: ConsoleHub::new(
                     "operator".into(),
                     &RunConfig::default(),
@@ -425,6 +444,7 @@ mod tests {
                 auth_token: token.map(str::to_owned),
                 name: "c".into(),
                 capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
+                shard: None,
             });
         }
 
@@ -441,15 +461,15 @@ mod tests {
     async fn join_update_refusal_outbox_and_shutdown() {
         let mut h = Harness::new();
         h.join(Some("secret"));
-        assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 7, .. }));
-        let Some(Event::Joined { client_id: 7, outbox, .. }) = h.events.recv().await else { panic!("joined") };
+        assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 1, .. }));
+        let Some(Event::Joined { client_id: 1, outbox, .. }) = h.events.recv().await else { panic!("joined") };
 
         h.upload(&tensors(0.5));
-        assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 7 })));
+        assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 1 })));
         match h.events.recv().await {
-            Some(Event::Update { client_id: 7, update }) => {
+            Some(Event::Update { client_id: 1, update }) => {
                 assert_eq!(update.tensors, tensors(0.5));
-                assert_eq!((update.round, update.examples, update.train_loss), (3, 5, 0.25));
+                assert_eq!((update.round, update.claimed_examples, update.train_loss), (3, 5, 0.25));
                 let frames = encode_update(&tensors(0.5), 3, 40);
                 assert_eq!(update.bytes, frames.iter().map(|f| f.len() as u64).sum::<u64>());
             }
@@ -457,10 +477,10 @@ mod tests {
         }
 
         h.upload(&tensors(f32::NAN));
-        assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 7 })));
+        assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 1 })));
         assert!(matches!(
             h.events.recv().await,
-            Some(Event::Rejected { client_id: Some(7), code: ErrorCode::NonFinite })
+            Some(Event::Rejected { client_id: Some(1), code: ErrorCode::NonFinite })
         ));
         assert!(matches!(h.recv_control().await, ServerMessage::Error { code: ErrorCode::NonFinite, .. }));
 
@@ -470,7 +490,7 @@ mod tests {
         h.cancel.cancel();
         assert!(matches!(h.recv_control().await, ServerMessage::Error { code: ErrorCode::ShuttingDown, .. }));
         assert!(matches!(h.recv().await, Message::Close(_)));
-        assert!(matches!(h.events.recv().await, Some(Event::Left { client_id: 7 })));
+        assert!(matches!(h.events.recv().await, Some(Event::Left { client_id: 1 })));
         h.task.await.unwrap();
     }
 
@@ -478,9 +498,9 @@ mod tests {
     async fn an_idle_connection_is_pinged_to_keep_it_open() {
         let mut h = Harness::new();
         h.join(Some("secret"));
-        assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 7, .. }));
+        assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 1, .. }));
         // The coordinator's end of the outbox stays open: a closed one ends the connection.
-        let Some(Event::Joined { client_id: 7, outbox: _outbox, .. }) = h.events.recv().await else { panic!("joined") };
+        let Some(Event::Joined { client_id: 1, outbox: _outbox, .. }) = h.events.recv().await else { panic!("joined") };
         tokio::time::advance(KEEPALIVE + Duration::from_secs(1)).await;
         let message = h.recv().await;
         assert!(matches!(message, Message::Ping(_)), "a ping after {KEEPALIVE:?} of silence, got {message:?}");

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::convert::Infallible;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -38,6 +39,8 @@ use crate::static_files::{FileError, file_response, relative_path};
 
 /// Events a slow console may fall behind by before it is told to re-read the snapshot.
 const EVENT_BACKLOG: usize = 1024;
+/// Clients that left stay in the table for the operator to see, the most recent this many of them.
+const LEFT_CLIENTS_KEPT: usize = 256;
 
 /// What the operator may change while the run goes on. Each applies from the next round's tasks on; a field left
 /// out (`None`) is not changed.
@@ -218,6 +221,8 @@ struct Hub {
     run_state: watch::Sender<RunState>,
     status: watch::Receiver<RunStatus>,
     live: Mutex<Live>,
+    /// Connections the listener closed at once because `max-connections` were open.
+    refused_connections: AtomicU64,
 }
 
 struct Live {
@@ -227,7 +232,7 @@ struct Live {
     pending: Settings,
     /// The round whose tasks are out.
     current_round: Option<u64>,
-    /// Every client that joined since the server started, by id; those that left stay, marked so.
+    /// Every client connected now and the last [`LEFT_CLIENTS_KEPT`] that left (marked so), by id.
     clients: BTreeMap<u64, ClientRow>,
     timeline: Vec<RoundAttempt>,
 }
@@ -241,6 +246,7 @@ impl ConsoleHub {
             events: broadcast::channel(EVENT_BACKLOG).0,
             run_state: watch::channel(initial).0,
             status,
+            refused_connections: AtomicU64::new(0),
             live: Mutex::new(Live {
                 config: config.clone(),
                 pending: Settings::default(),
@@ -342,6 +348,15 @@ impl ConsoleHub {
 
     pub fn client_left(&self, id: u64) {
         self.client_changed(id, |row| row.state = ClientState::Left);
+        let mut live = self.live();
+        let left: Vec<u64> = live.clients.values().filter(|c| c.state == ClientState::Left).map(|c| c.id).collect();
+        for id in &left[..left.len().saturating_sub(LEFT_CLIENTS_KEPT)] {
+            live.clients.remove(id);
+        }
+    }
+
+    pub fn count_refused_connection(&self) {
+        self.0.refused_connections.fetch_add(1, Ordering::Relaxed);
     }
 
     pub fn round_started(&self, round: u64, attempt: u64, sampled: Vec<u64>) {
@@ -399,6 +414,9 @@ impl ConsoleHub {
                 "connected": status.connected,
                 "min_clients": live.config.min_clients,
                 "retried_rounds": status.retried_rounds,
+                "skipped_rounds": status.skipped_rounds,
+                "corrected_claims": status.corrected_claims,
+                "refused_connections": self.0.refused_connections.load(Ordering::Relaxed),
                 "rejections": status.rejections,
             },
             "settings": Settings::of(&live.config),
@@ -428,7 +446,7 @@ pub fn random_token() -> String {
 }
 
 /// Compares in time independent of where the strings differ, so the token cannot be guessed byte by byte.
-fn same_secret(a: &str, b: &str) -> bool {
+pub fn same_secret(a: &str, b: &str) -> bool {
     a.len() == b.len() && a.bytes().zip(b.bytes()).fold(0u8, |diff, (x, y)| diff | (x ^ y)) == 0
 }
 

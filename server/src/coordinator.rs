@@ -26,6 +26,7 @@ use crate::app::PublishedModel;
 use crate::config::RunConfig;
 use crate::console::{ClientState, ConsoleHub, RunState, Settings};
 use crate::run_dir::{ModelExporter, RunDir, RunDirError};
+use crate::volunteer::{Sessions, ShardBinding};
 
 /// What connections tell the coordinator.
 #[derive(Debug)]
@@ -34,6 +35,8 @@ pub enum Event {
         client_id: u64,
         name: String,
         capabilities: Capabilities,
+        /// The shard the client trains on; `None` when the workload offers none (its updates weigh equally).
+        shard: Option<ShardBinding>,
         outbox: mpsc::UnboundedSender<ServerMessage>,
     },
     Left {
@@ -76,7 +79,8 @@ pub enum Event {
 pub struct UpdateReceived {
     pub round: u64,
     pub tensors: NamedTensors,
-    pub examples: u64,
+    /// What the update header said; the update weighs what the client's shard holds.
+    pub claimed_examples: u64,
     pub train_loss: f64,
     /// Bytes of the update's binary frames, headers included.
     pub bytes: u64,
@@ -91,6 +95,11 @@ pub struct RunStatus {
     pub rejections: BTreeMap<ErrorCode, u64>,
     /// Round attempts that closed with too few updates.
     pub retried_rounds: u64,
+    /// Rounds whose every aggregate failed (or whose evaluation did): the global model stayed as it was.
+    pub skipped_rounds: u64,
+    /// Updates whose example count claim differed from their shard's training examples (the shard's count was
+    /// used).
+    pub corrected_claims: u64,
     pub finished: bool,
 }
 
@@ -100,8 +109,6 @@ pub enum CoordinatorError {
     Cancelled,
     #[error(transparent)]
     RunDir(#[from] RunDirError),
-    #[error("aggregation failed: {0}")]
-    Aggregate(#[from] AggregateError),
     #[error("evaluation failed: {0}")]
     Evaluate(BoxError),
 }
@@ -122,10 +129,13 @@ pub struct Coordinator {
     pub model_tx: watch::Sender<Arc<PublishedModel>>,
     pub status_tx: watch::Sender<RunStatus>,
     pub console: ConsoleHub,
+    /// Upload rights of the clients asked for rollout videos.
+    pub sessions: Sessions,
 }
 
 struct ClientEntry {
     name: String,
+    shard: Option<ShardBinding>,
     outbox: mpsc::UnboundedSender<ServerMessage>,
 }
 
@@ -133,6 +143,10 @@ struct ClientEntry {
 struct Participant {
     name: String,
     update: Option<UpdateReceived>,
+    /// What the update weighs: the client's shard's training examples (1 each where no shard is known).
+    examples: u64,
+    /// Why the update was left out of the aggregate, when it was.
+    dropped: Option<String>,
     metrics: Option<RoundMetrics>,
     eval: Option<(u64, f64)>,
     rollout: Option<serde_json::Value>,
@@ -175,7 +189,7 @@ impl Running {
                 round + 1
             }
             None => {
-                let metrics = self.evaluate(0).await?;
+                let metrics = self.evaluate(0, Arc::clone(&self.c.global)).await.map_err(CoordinatorError::Evaluate)?;
                 let line = self.persist(0, json!({ "clients": [], "global": metrics })).await?;
                 self.c.console.round_closed(0, 0, 0, Some(&line));
                 1
@@ -220,14 +234,18 @@ impl Running {
             let started = Instant::now();
             let state = self.start_round(round, attempt);
             let mut state = self.collect(state).await?;
-            let clients = client_records(&state);
-            let mut updates: Vec<(String, u64, UpdateReceived)> = state
+            self.c.sessions.end_uploads(round);
+            let mut updates: Vec<(&str, u64, NamedTensors, u64)> = state
                 .participants
                 .iter_mut()
-                .filter_map(|(id, p)| Some((p.name.clone(), *id, p.update.take()?)))
+                .filter_map(|(id, p)| {
+                    let tensors = std::mem::take(&mut p.update.as_mut()?.tensors);
+                    Some((p.name.as_str(), *id, tensors, p.examples))
+                })
                 .collect();
             // Aggregation order follows the clients' names, so the sum does not depend on arrival or id order.
-            updates.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
+            updates.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+            let updates: Vec<(u64, NamedTensors, u64)> = updates.into_iter().map(|(_, id, t, n)| (id, t, n)).collect();
             let accepted = updates.len() as u32;
             if updates.len() < self.c.config.min_fit {
                 tracing::warn!(round, attempt, updates = accepted, min_fit = self.c.config.min_fit, "round retried");
@@ -242,16 +260,24 @@ impl Running {
                 attempt += 1;
                 continue;
             }
-            let contributors: Vec<u64> = updates.iter().map(|(_, id, _)| *id).collect();
-            self.aggregate(updates.into_iter().map(|(_, _, u)| (u.tensors, u.examples)).collect()).await?;
-            let metrics = if round.is_multiple_of(self.c.config.eval_every) || round == self.c.config.num_server_rounds
-            {
-                Some(self.evaluate(round).await?)
-            } else {
-                None
-            };
+            let evaluate = round.is_multiple_of(self.c.config.eval_every) || round == self.c.config.num_server_rounds;
+            let outcome = self.aggregate_checked(round, updates, evaluate, &mut state).await?;
             let seconds = started.elapsed().as_secs_f64();
-            let mut line = json!({ "attempt": attempt, "seconds": seconds, "clients": clients, "global": metrics });
+            let clients = client_records(&state);
+            let mut line = json!({ "attempt": attempt, "seconds": seconds, "clients": clients });
+            let contributors = match outcome {
+                Aggregated::Accepted { metrics, contributors } => {
+                    line["global"] = json!(metrics);
+                    contributors
+                }
+                Aggregated::Skipped { reason } => {
+                    tracing::warn!(round, %reason, "round skipped: the global model stays as it was");
+                    self.c.status_tx.send_modify(|s| s.skipped_rounds += 1);
+                    line["global"] = serde_json::Value::Null;
+                    line["skipped"] = json!(reason);
+                    Vec::new()
+                }
+            };
             if !new_settings.is_empty() {
                 line["settings"] = json!(new_settings);
             }
@@ -260,7 +286,7 @@ impl Running {
                 round,
                 accepted: true,
                 model_version: round,
-                updates: accepted,
+                updates: contributors.len() as u32,
             });
             for id in contributors {
                 self.c.console.client_changed(id, |c| c.updates_accepted += 1);
@@ -305,7 +331,7 @@ impl Running {
         let mut pool: Vec<(&str, u64)> = self.clients.iter().map(|(id, c)| (c.name.as_str(), *id)).collect();
         pool.sort();
         let n = pool.len();
-        let k = ((cfg.fraction_fit * n as f64).ceil() as usize).max(cfg.min_fit).min(n);
+        let k = cfg.sampled_clients(n);
         let mut rng = StdRng::seed_from_u64(mix(mix(cfg.seed, round), attempt));
         let mut picked = rand::seq::index::sample(&mut rng, n, k).into_vec();
         picked.sort_unstable();
@@ -340,9 +366,14 @@ impl Running {
                 ClientState::Training
             };
             rollouts_requested |= task.rollout.is_some();
+            if let Some(request) = &task.rollout {
+                self.c.sessions.allow_uploads(client_id, round, request.episodes);
+            }
             self.clients[&client_id].outbox.send(ServerMessage::RoundTask(task)).ok();
             self.c.console.client_changed(client_id, |c| c.state = first_step);
-            participants.insert(client_id, Participant { name: name.to_owned(), ..Participant::default() });
+            // Weighed by what the server knows the client holds, never by what its update claims.
+            let examples = self.clients[&client_id].shard.map_or(1, |s| s.train_examples);
+            participants.insert(client_id, Participant { name: name.to_owned(), examples, ..Participant::default() });
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
         self.c.console.round_started(round, attempt, participants.keys().copied().collect());
@@ -375,10 +406,10 @@ impl Running {
         // Each event concerns at most one participant, so the map is taken once.
         let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
         match event {
-            Event::Joined { client_id, name, capabilities, outbox } => {
+            Event::Joined { client_id, name, capabilities, shard, outbox } => {
                 tracing::debug!(client_id, ?capabilities, "registered");
                 self.c.console.client_joined(client_id, &name, &capabilities.backend);
-                self.clients.insert(client_id, ClientEntry { name, outbox });
+                self.clients.insert(client_id, ClientEntry { name, shard, outbox });
             }
             Event::Left { client_id } => {
                 self.clients.remove(&client_id);
@@ -388,7 +419,19 @@ impl Running {
                 }
             }
             Event::Update { client_id, update } => match participant(client_id) {
-                Some(p) if Some(update.round) == current && p.update.is_none() => p.update = Some(*update),
+                Some(p) if Some(update.round) == current && p.update.is_none() => {
+                    let known = self.clients.get(&client_id).and_then(|c| c.shard);
+                    if known.is_some_and(|s| s.train_examples != update.claimed_examples) {
+                        tracing::info!(
+                            client_id,
+                            claimed = update.claimed_examples,
+                            weight = p.examples,
+                            "update claims another example count than its shard holds: weighed by the shard"
+                        );
+                        self.c.status_tx.send_modify(|s| s.corrected_claims += 1);
+                    }
+                    p.update = Some(*update);
+                }
                 _ => {
                     let message =
                         format!("update for round {} is not expected (current round {current:?})", update.round);
@@ -455,19 +498,64 @@ impl Running {
         }
     }
 
-    async fn aggregate(&mut self, updates: Vec<(NamedTensors, u64)>) -> Result<(), CoordinatorError> {
-        let strategy = Arc::clone(&self.c.strategy);
-        let global = Arc::clone(&self.c.global);
-        let result = blocking(move || strategy.lock().expect("strategy lock").aggregate(&global, &updates)).await;
-        self.c.global = Arc::new(result?);
-        Ok(())
+    /// Aggregates `updates` (client id, tensors, weight) into the next global model and, when `evaluate`, evaluates
+    /// it. A failed aggregate or evaluation (an error, or a figure that is not finite) drops the update farthest
+    /// from the current global model and tries again, as long as more than `min-fit` updates remain and at most
+    /// [`MAX_DROPPED_PER_ROUND`] times; after that the round is skipped. Either way the run goes on.
+    async fn aggregate_checked(
+        &mut self,
+        round: u64,
+        mut updates: Vec<(u64, NamedTensors, u64)>,
+        evaluate: bool,
+        state: &mut RoundState,
+    ) -> Result<Aggregated, CoordinatorError> {
+        let mut dropped = 0;
+        loop {
+            let strategy = Arc::clone(&self.c.strategy);
+            let global = Arc::clone(&self.c.global);
+            let pairs: Vec<(NamedTensors, u64)> = updates.iter().map(|(_, t, n)| (t.clone(), *n)).collect();
+            let aggregated = blocking(move || strategy.lock().expect("strategy lock").aggregate(&global, &pairs)).await;
+            let (reason, culprit) = match aggregated {
+                Ok(candidate) => {
+                    let candidate = Arc::new(candidate);
+                    let metrics = match evaluate {
+                        true => Some(self.evaluate(round, Arc::clone(&candidate)).await),
+                        false => None,
+                    };
+                    match metrics {
+                        Some(Ok(m)) if !m.values().all(|v| v.is_finite()) => {
+                            (format!("the aggregate evaluates to non-finite figures {m:?}"), None)
+                        }
+                        Some(Err(e)) => (format!("evaluating the aggregate failed: {e}"), None),
+                        metrics => {
+                            self.c.global = candidate;
+                            let contributors = updates.iter().map(|(id, _, _)| *id).collect();
+                            return Ok(Aggregated::Accepted { metrics: metrics.and_then(Result::ok), contributors });
+                        }
+                    }
+                }
+                Err(AggregateError::Mismatch { index, source }) => {
+                    (format!("update {index} does not fit the model: {source}"), Some(index))
+                }
+                Err(e) => (format!("aggregation failed: {e}"), None),
+            };
+            if dropped == MAX_DROPPED_PER_ROUND || updates.len() <= self.c.config.min_fit {
+                return Ok(Aggregated::Skipped { reason });
+            }
+            let culprit = culprit.unwrap_or_else(|| farthest(&self.c.global, &updates));
+            let (client_id, _, _) = updates.remove(culprit);
+            dropped += 1;
+            tracing::warn!(round, client_id, %reason, "dropping the update farthest from the global model, re-aggregating");
+            if let Some(p) = state.participants.get_mut(&client_id) {
+                p.dropped = Some(reason);
+            }
+            self.count(ErrorCode::DroppedUpdate);
+        }
     }
 
-    async fn evaluate(&mut self, round: u64) -> Result<EvalMetrics, CoordinatorError> {
+    async fn evaluate(&mut self, round: u64, model: Arc<NamedTensors>) -> Result<EvalMetrics, BoxError> {
         let evaluator = Arc::clone(&self.c.evaluator);
-        let global = Arc::clone(&self.c.global);
-        let result = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&global)).await;
-        let metrics = result.map_err(CoordinatorError::Evaluate)?;
+        let metrics = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&model)).await?;
         tracing::info!(round, ?metrics, "global model evaluated");
         Ok(metrics)
     }
@@ -489,7 +577,15 @@ impl Running {
         let (run_dir, exporters, global, config) =
             (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global), self.c.config.clone());
         let (line, bytes) = blocking(move || -> Result<_, RunDirError> {
-            run_dir.save_model(round, &global, &exporters, &config)?;
+            let measured = run_dir.save_model(round, &global, &exporters, &config)?;
+            if !measured.is_empty() {
+                if !line["global"].is_object() {
+                    line["global"] = json!({});
+                }
+                for (name, value) in measured {
+                    line["global"][name] = json!(value);
+                }
+            }
             run_dir.append_metrics(&line)?;
             let bytes = global.to_safetensors().map_err(|source| RunDirError::Model { round, source })?;
             Ok((line, bytes))
@@ -517,6 +613,32 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> 
     }
 }
 
+/// What became of a round's updates.
+enum Aggregated {
+    /// The global model was replaced; `metrics` is its evaluation when the round evaluates.
+    Accepted { metrics: Option<EvalMetrics>, contributors: Vec<u64> },
+    /// Every aggregate the round could form failed: the global model stays as it was.
+    Skipped { reason: String },
+}
+
+/// Updates a round may leave out of its aggregate before it gives up and is skipped.
+const MAX_DROPPED_PER_ROUND: usize = 3;
+
+/// Index of the update farthest (Euclidean) from `global`: after a failed aggregate, the likeliest culprit.
+fn farthest(global: &NamedTensors, updates: &[(u64, NamedTensors, u64)]) -> usize {
+    let distance = |update: &NamedTensors| -> f64 {
+        global
+            .iter()
+            .map(|(name, g)| {
+                let u = update.get(name).map_or(&[][..], |t| t.values.as_slice());
+                g.values.iter().zip(u).map(|(a, b)| (f64::from(*b) - f64::from(*a)).powi(2)).sum::<f64>()
+            })
+            .sum()
+    };
+    let distances: Vec<f64> = updates.iter().map(|(_, update, _)| distance(update)).collect();
+    (0..updates.len()).max_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap_or(0)
+}
+
 /// One metrics record per sampled client.
 fn client_records(state: &RoundState) -> Vec<serde_json::Value> {
     state
@@ -526,8 +648,10 @@ fn client_records(state: &RoundState) -> Vec<serde_json::Value> {
             json!({
                 "client_id": id,
                 "name": p.name,
-                "accepted": p.update.is_some(),
-                "examples": p.update.as_ref().map(|u| u.examples),
+                "accepted": p.update.is_some() && p.dropped.is_none(),
+                "examples": p.update.as_ref().map(|_| p.examples),
+                "claimed_examples": p.update.as_ref().map(|u| u.claimed_examples),
+                "dropped": p.dropped,
                 "train_loss": p.update.as_ref().map(|u| u.train_loss),
                 "update_bytes": p.update.as_ref().map(|u| u.bytes),
                 "seconds": p.metrics.as_ref().map(|m| m.seconds),

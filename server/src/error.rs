@@ -15,6 +15,8 @@ pub enum ServerError {
     NotFound(String),
     #[error("unauthorized: {0}")]
     Unauthorized(String),
+    #[error("forbidden: {0}")]
+    Forbidden(String),
     #[error("bad request: {0}")]
     BadRequest(String),
     #[error("could not store: {0}")]
@@ -26,6 +28,7 @@ impl IntoResponse for ServerError {
         let status = match self {
             Self::ModelVersion { .. } | Self::NoShard { .. } | Self::NotFound(_) => StatusCode::NOT_FOUND,
             Self::Unauthorized(_) => StatusCode::UNAUTHORIZED,
+            Self::Forbidden(_) => StatusCode::FORBIDDEN,
             Self::BadRequest(_) => StatusCode::BAD_REQUEST,
             Self::ShardIo(_) | Self::Storage(_) => StatusCode::INTERNAL_SERVER_ERROR,
         };

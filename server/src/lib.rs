@@ -8,6 +8,7 @@ pub mod console;
 pub mod coordinator;
 pub mod datagen;
 pub mod error;
+pub mod http;
 pub mod linreg;
 pub mod native_client;
 pub mod run_dir;

@@ -1,5 +1,5 @@
-//! A real but tiny workload until the SmolVLA trainer lands: least-squares linear regression on synthetic data,
-//! trained by minibatch SGD. A frozen random feature projection stands in for SmolVLA's frozen backbone: it
+//! A real but tiny workload that exercises the federation machinery in milliseconds: least-squares linear
+//! regression on synthetic data, trained by minibatch SGD. A frozen random feature projection stands in for SmolVLA's frozen backbone: it
 //! never crosses the wire, only the head (`head.weight`, `head.bias`) is trainable and exchanged.
 
 use fedvla_federation::{
@@ -11,7 +11,7 @@ use rand::{Rng, SeedableRng};
 
 use crate::config::{Partitioning, RunConfig};
 use crate::run_dir::ModelExporter;
-use crate::volunteer::VolunteerOffer;
+use crate::volunteer::{ShardOffer, VolunteerOffer};
 use crate::workload::Workload;
 
 /// Raw input size.
@@ -108,8 +108,12 @@ fn head(tensors: &NamedTensors) -> Result<(Vec<f32>, f32), BoxError> {
     Ok((weight, tensors.get(BIAS).expect("validated").values[0]))
 }
 
-/// Client `shard`'s trainer: its training examples (48 + 16 * shard, so clients weigh differently) and a held-out
-/// split of 32.
+/// Training examples of shard `shard`: clients weigh differently.
+pub fn train_examples(shard: usize) -> usize {
+    48 + 16 * shard
+}
+
+/// Client `shard`'s trainer: its [`train_examples`] and a held-out split of 32.
 #[derive(Debug, Clone)]
 pub struct LinRegTrainer {
     train: Examples,
@@ -129,7 +133,7 @@ impl LinRegTrainer {
         let seed = WORLD_SEED ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
         let (weight, bias) = head(&initial_model(0)).expect("initial model is valid");
         Self {
-            train: world.examples(seed, 48 + 16 * shard, shift),
+            train: world.examples(seed, train_examples(shard), shift),
             heldout: world.examples(seed ^ 1, 32, shift),
             global: (weight.clone(), bias),
             weight,
@@ -221,16 +225,17 @@ impl Evaluator for LinRegEvaluator {
     }
 }
 
-/// The linreg workload: initial head from the run's seed, clients partitioned as configured.
+/// The linreg workload: initial head from the run's seed, `num_clients` shards partitioned as configured.
 #[derive(Debug, Clone, Copy)]
 pub struct LinRegWorkload {
     pub seed: u64,
     pub partitioning: Partitioning,
+    pub num_clients: usize,
 }
 
 impl LinRegWorkload {
     pub fn from_config(config: &RunConfig) -> Self {
-        Self { seed: config.seed, partitioning: config.partitioning }
+        Self { seed: config.seed, partitioning: config.partitioning, num_clients: config.num_clients }
     }
 }
 
@@ -249,9 +254,12 @@ impl Workload for LinRegWorkload {
         Vec::new()
     }
 
-    /// No shards or weights to download: a linreg client generates its shard from its index.
+    /// Shards without files (a linreg client generates its shard from its index) and no weights to download.
     fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
-        Ok(VolunteerOffer::bare("linreg"))
+        let shards = (0..self.num_clients)
+            .map(|k| ShardOffer { file: None, train_examples: train_examples(k) as u64 })
+            .collect();
+        Ok(VolunteerOffer { workload: "linreg".into(), shards, ..VolunteerOffer::default() })
     }
 
     fn trainer(&self, shard: usize) -> Result<LinRegTrainer, BoxError> {

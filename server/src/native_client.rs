@@ -68,10 +68,11 @@ impl NativeTransport {
     }
 
     /// What the server offers volunteer `name` (`GET /api/volunteer?name=`): a new name gets the next shard
-    /// round-robin, a returning one its shard again.
-    pub async fn fetch_setup(&self, name: &str) -> Result<VolunteerSetup, BoxError> {
+    /// round-robin, a returning one its shard again; `shard` asks for that one (it becomes the name's).
+    pub async fn fetch_setup(&self, name: &str, shard: Option<u32>) -> Result<VolunteerSetup, BoxError> {
         let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
-        let bytes = self.get(&format!("/api/volunteer?name={name}")).await?;
+        let shard = shard.map(|s| format!("&shard={s}")).unwrap_or_default();
+        let bytes = self.get(&format!("/api/volunteer?name={name}{shard}")).await?;
         serde_json::from_slice(&bytes).map_err(|e| format!("GET /api/volunteer: {e}").into())
     }
 

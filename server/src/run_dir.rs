@@ -5,9 +5,10 @@ use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use fedvla_federation::{BoxError, NamedTensors, TensorError};
+use fedvla_federation::{BoxError, EvalMetrics, NamedTensors, TensorError};
 
 use crate::config::{ConfigError, RunConfig};
+use crate::volunteer::Registry;
 
 pub const CONFIG_FILE: &str = "config.toml";
 pub const METRICS_FILE: &str = "metrics.jsonl";
@@ -20,6 +21,8 @@ pub const LOG_FILE: &str = "server.log";
 pub const EVALUATE_DIR: &str = "evaluate";
 /// The trainable tensors of each round; resume reads it back.
 pub const TRAINABLE_FILE: &str = "trainable.safetensors";
+/// The volunteer registry: shard by volunteer name, spent client ids.
+pub const VOLUNTEERS_FILE: &str = "volunteers.json";
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunDirError {
@@ -27,6 +30,7 @@ pub enum RunDirError {
     Io { path: PathBuf, source: std::io::Error },
     #[error(transparent)]
     Config(#[from] ConfigError),
+    /// A record of the run directory (a metrics line, the volunteer registry) that does not parse.
     #[error("{path} line {line}: {message}")]
     Metrics { path: PathBuf, line: usize, message: String },
     #[error("global model of round {round}: {source}")]
@@ -39,10 +43,17 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunDirError + '_ {
     move |source| RunDirError::Io { path: path.to_owned(), source }
 }
 
-/// Writes one round's global model into a fresh directory. The LeRobot policy export plugs in here. `config` is
-/// the run's configuration as the round ran it: the operator may have changed settings (e.g. rollout-episodes).
+/// Writes one round's global model into a fresh directory. The LeRobot policy export and the sim rollouts plug in
+/// here. `config` is the run's configuration as the round ran it: the operator may have changed settings (e.g.
+/// rollout-episodes). Returns what the export measured (the rollouts' success rate), for the round's metrics.
 pub trait ModelExporter: Send + Sync {
-    fn export(&self, round: u64, global: &NamedTensors, config: &RunConfig, dir: &Path) -> Result<(), BoxError>;
+    fn export(
+        &self,
+        round: u64,
+        global: &NamedTensors,
+        config: &RunConfig,
+        dir: &Path,
+    ) -> Result<EvalMetrics, BoxError>;
 }
 
 /// Writes the trainable tensors as `trainable.safetensors` (always on: resume needs it).
@@ -50,9 +61,15 @@ pub trait ModelExporter: Send + Sync {
 pub struct TrainableSafetensors;
 
 impl ModelExporter for TrainableSafetensors {
-    fn export(&self, _round: u64, global: &NamedTensors, _config: &RunConfig, dir: &Path) -> Result<(), BoxError> {
+    fn export(
+        &self,
+        _round: u64,
+        global: &NamedTensors,
+        _config: &RunConfig,
+        dir: &Path,
+    ) -> Result<EvalMetrics, BoxError> {
         fs::write(dir.join(TRAINABLE_FILE), global.to_safetensors()?)?;
-        Ok(())
+        Ok(EvalMetrics::new())
     }
 }
 
@@ -150,34 +167,58 @@ impl RunDir {
         self.path.join(MODELS_DIR).join(format!("round_{round}"))
     }
 
-    /// Writes `global_model/round_N/` through every exporter into a temporary directory, then renames it.
+    /// Writes `global_model/round_N/` through every exporter into a temporary directory, then renames it. Returns
+    /// what the exporters measured.
     pub fn save_model(
         &self,
         round: u64,
         global: &NamedTensors,
         exporters: &[Box<dyn ModelExporter>],
         config: &RunConfig,
-    ) -> Result<(), RunDirError> {
+    ) -> Result<EvalMetrics, RunDirError> {
         let dir = self.model_dir(round);
         let tmp = dir.with_extension("tmp");
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
         }
         fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        let mut measured = EvalMetrics::new();
         for exporter in exporters {
-            exporter.export(round, global, config, &tmp).map_err(|source| RunDirError::Export { round, source })?;
+            let figures =
+                exporter.export(round, global, config, &tmp).map_err(|source| RunDirError::Export { round, source })?;
+            measured.extend(figures);
         }
         if dir.exists() {
             // Left by a run that crashed after saving but before its metrics line: this round is being redone.
             fs::remove_dir_all(&dir).map_err(io(&dir))?;
         }
-        fs::rename(&tmp, &dir).map_err(io(&dir))
+        fs::rename(&tmp, &dir).map_err(io(&dir))?;
+        Ok(measured)
     }
 
     pub fn load_model(&self, round: u64) -> Result<NamedTensors, RunDirError> {
         let path = self.model_dir(round).join(TRAINABLE_FILE);
         let bytes = fs::read(&path).map_err(io(&path))?;
         NamedTensors::from_safetensors(&bytes).map_err(|source| RunDirError::Model { round, source })
+    }
+
+    /// The volunteer registry a previous server of this run left; `None` for a new run.
+    pub fn read_volunteers(&self) -> Result<Option<Registry>, RunDirError> {
+        let path = self.path.join(VOLUNTEERS_FILE);
+        match fs::read(&path) {
+            Ok(bytes) => serde_json::from_slice(&bytes).map(Some).map_err(|e| RunDirError::Metrics {
+                path,
+                line: e.line(),
+                message: e.to_string(),
+            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(io(&path)(e)),
+        }
+    }
+
+    pub fn write_volunteers(&self, registry: &Registry) -> Result<(), RunDirError> {
+        let bytes = serde_json::to_vec(registry).expect("the registry serializes");
+        write_atomic(&self.path.join(VOLUNTEERS_FILE), &bytes)
     }
 
     /// Opens `server.log` for appending.

@@ -2,11 +2,10 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use axum::body::Bytes;
-use axum::serve::ListenerExt;
 use fedvla_federation::{BoxError, Evaluator, FedAvg, NamedTensors, Strategy, TensorError, UpdateLimits};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -17,6 +16,7 @@ use crate::app::{AppState, PublishedModel, app};
 use crate::config::{RunConfig, StrategyKind};
 use crate::console::{ConsoleHub, random_token};
 use crate::coordinator::{Coordinator, CoordinatorError, RunStatus};
+use crate::http::{self, HttpLimits};
 use crate::run_dir::{ModelExporter, RunDir, RunDirError, TrainableSafetensors};
 use crate::volunteer::{Sessions, VolunteerOffer, Volunteers};
 use crate::workload::Workload;
@@ -100,16 +100,22 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     let console = ConsoleHub::new(operator_token.clone(), &config, status.clone());
     let cancel = CancellationToken::new();
     let limits = UpdateLimits::for_spec(&spec, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
+    let http_limits = HttpLimits {
+        max_connections: config.max_connections,
+        header_read_timeout: Duration::from_millis(config.header_read_timeout_ms),
+        idle_timeout: Duration::from_millis(config.idle_timeout_ms),
+    };
+    let sessions = Sessions::default();
     let state = AppState {
         events: events_tx,
         model: model_rx,
         cancel: cancel.clone(),
         spec,
         limits,
+        keepalive: http_limits.keepalive(),
         auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
-        next_client_id: Arc::new(AtomicU64::new(1)),
-        volunteers: Arc::new(Volunteers::new(volunteer)),
-        sessions: Sessions::default(),
+        volunteers: Arc::new(Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names)?),
+        sessions: sessions.clone(),
         run_dir: run_dir.clone(),
         console: console.clone(),
         www_dir: Arc::new(PathBuf::from(&config.www_dir)),
@@ -128,19 +134,13 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         completed,
         model_tx,
         status_tx,
-        console,
+        console: console.clone(),
+        sessions,
     };
     let addr = listener.local_addr()?;
     let coordinator = tokio::spawn(coordinator.run());
     let shutdown = cancel.clone();
-    let http = tokio::spawn(async move {
-        let listener = listener.tap_io(|tcp| {
-            if let Err(e) = tcp.set_nodelay(true) {
-                tracing::debug!(error = %e, "TCP_NODELAY not set");
-            }
-        });
-        axum::serve(listener, app(state)).with_graceful_shutdown(shutdown.cancelled_owned()).await
-    });
+    let http = tokio::spawn(http::serve(listener, app(state), http_limits, console, shutdown));
     tracing::info!(%addr, "listening");
     if generated_token {
         tracing::info!("console: http://{addr}/console  token: {operator_token}");

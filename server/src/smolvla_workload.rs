@@ -2,6 +2,7 @@
 //! recorded by the sim's scripted expert on first use), its partition into client shards and the
 //! server's held-out shard, the initial checkpoint, and a LeRobot policy directory per round.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -11,7 +12,7 @@ use fedvla_data::{
     ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard,
     episode_tasks, partition,
 };
-use fedvla_federation::{BoxError, Evaluator, NamedTensors};
+use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors};
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::rollout::TaskTokens;
 use fedvla_learner::tensors::{to_named, to_weights};
@@ -27,7 +28,7 @@ use crate::config::{Partitioning, RunConfig};
 use crate::datagen::{GenDataOptions, generate_dataset};
 use crate::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
 use crate::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
-use crate::volunteer::VolunteerOffer;
+use crate::volunteer::{ShardOffer, VolunteerOffer};
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -40,8 +41,10 @@ pub struct SmolVlaWorkload {
     weights: WeightMap,
     stats: NormStats,
     tokenizer: WordTokenizer,
-    client_shards: Vec<PathBuf>,
+    client_shards: Vec<ShardOffer>,
     server_shard: PathBuf,
+    /// Every client's training episodes in one shard: what the centralized baseline trains on.
+    pooled_shard: PathBuf,
     seed: u64,
 }
 
@@ -76,9 +79,28 @@ fn partition_strategy(p: Partitioning) -> PartitionStrategy {
     }
 }
 
+/// `model-size` with the run configuration's changes to it (what is trained, image and patch size, action chunk).
+fn model_config(config: &RunConfig) -> anyhow::Result<SmolVlaConfig> {
+    let mut cfg = SmolVlaConfig::preset(&config.model_size)?
+        .with_trained_parts(config.freeze_vision_encoder, config.train_expert_only);
+    if config.image_size > 0 || config.patch_size > 0 {
+        let v = &cfg.vlm.vision_config;
+        let size = if config.image_size > 0 { config.image_size } else { v.image_size };
+        let patch = if config.patch_size > 0 { config.patch_size } else { v.patch_size };
+        cfg = cfg.with_image_size(size, patch);
+    }
+    if config.chunk_size > 0 || config.n_action_steps > 0 {
+        let chunk = if config.chunk_size > 0 { config.chunk_size } else { cfg.chunk_size };
+        let steps = if config.n_action_steps > 0 { config.n_action_steps } else { chunk.min(cfg.n_action_steps) };
+        cfg = cfg.with_action_chunk(chunk, steps);
+    }
+    cfg.validate()?;
+    Ok(cfg)
+}
+
 /// The policy configuration of `model-size`, with the dataset's cameras (in its order) as inputs.
 fn policy_config(config: &RunConfig, dataset: &LeRobotDataset) -> anyhow::Result<SmolVlaConfig> {
-    let mut cfg = SmolVlaConfig::preset(&config.model_size)?;
+    let mut cfg = model_config(config)?;
     let features = &dataset.info().features;
     let cameras: Vec<Feature> = dataset
         .camera_keys()
@@ -116,8 +138,17 @@ impl SmolVlaWorkload {
     /// Opens (or records) the dataset, partitions it among `config.num_clients` clients and writes
     /// their shards and the server's held-out shard into `shard_dir`.
     pub fn prepare(config: &RunConfig, shard_dir: &Path) -> anyhow::Result<Self> {
-        let preset = SmolVlaConfig::preset(&config.model_size)?;
-        let root = ensure_dataset(config, preset.resize_imgs_with_padding.1)?;
+        Self::prepare_with(config, shard_dir, false)
+    }
+
+    /// [`SmolVlaWorkload::prepare`] plus the pooled shard of every client's training episodes, for
+    /// [`SmolVlaWorkload::centralized_trainer`].
+    pub fn prepare_centralized(config: &RunConfig, shard_dir: &Path) -> anyhow::Result<Self> {
+        Self::prepare_with(config, shard_dir, true)
+    }
+
+    fn prepare_with(config: &RunConfig, shard_dir: &Path, pooled: bool) -> anyhow::Result<Self> {
+        let root = ensure_dataset(config, model_config(config)?.resize_imgs_with_padding.1)?;
         let dataset = LeRobotDataset::open(&root).with_context(|| format!("opening dataset {}", root.display()))?;
         let cfg = policy_config(config, &dataset)?;
         let tokenizer = WordTokenizer::from_texts(dataset.tasks().iter().map(String::as_str));
@@ -148,12 +179,14 @@ impl SmolVlaWorkload {
             let (ids, _, _) = tokenizer.encode_batch(&[task], cfg.tokenizer_max_length, false);
             ids.into_iter().map(|i| i as u32).collect()
         };
+        let length: BTreeMap<usize, usize> = dataset.episodes().iter().map(|e| (e.episode_index, e.length)).collect();
         let client_shards = (0..config.num_clients)
             .map(|k| {
                 let path = shard_dir.join(format!("client_{k}.safetensors"));
                 build_shard(&dataset, &parts, k, &spec, Some(&tokenize), &path)
                     .with_context(|| format!("building shard {k}"))?;
-                Ok(path)
+                let train_examples = parts.clients[k].train.iter().map(|e| length[e] as u64).sum();
+                Ok(ShardOffer { file: Some(path), train_examples })
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
         // The server's held-out episodes, packed like a client's held-out split.
@@ -164,6 +197,15 @@ impl SmolVlaWorkload {
         let server_shard = shard_dir.join("server_heldout.safetensors");
         build_shard(&dataset, &server_parts, 0, &spec, Some(&tokenize), &server_shard)
             .context("building the server's held-out shard")?;
+        let pooled_shard = shard_dir.join("pooled_train.safetensors");
+        if pooled {
+            // The union of the clients' training episodes; their held-out episodes stay out.
+            let mut train: Vec<usize> = parts.clients.iter().flat_map(|c| c.train.iter().copied()).collect();
+            train.sort_unstable();
+            let pooled = Partition { clients: vec![ClientSplit { train, held_out: Vec::new() }], ..parts.clone() };
+            build_shard(&dataset, &pooled, 0, &spec, Some(&tokenize), &pooled_shard)
+                .context("building the pooled training shard")?;
+        }
         let weights = match &config.init_policy {
             path if path.is_empty() => init_random(&cfg.param_specs(), config.seed),
             path => {
@@ -183,8 +225,16 @@ impl SmolVlaWorkload {
             tokenizer,
             client_shards,
             server_shard,
+            pooled_shard,
             seed: config.seed,
         })
+    }
+
+    /// One trainer on every client's training episodes (the shard [`SmolVlaWorkload::prepare_centralized`]
+    /// pooled), from the run's initial weights: the centralized baseline of a federation.
+    pub fn centralized_trainer(&self) -> Result<SmolVlaTrainer, BoxError> {
+        let examples = self.examples(&self.pooled_shard)?;
+        Ok(SmolVlaTrainer::new(&self.cfg, &self.weights, examples, self.seed, &Device::flex().autodiff(), "cpu-flex")?)
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -220,9 +270,15 @@ struct SimRollouts {
 }
 
 impl ModelExporter for SimRollouts {
-    fn export(&self, round: u64, global: &NamedTensors, config: &RunConfig, dir: &Path) -> Result<(), BoxError> {
+    fn export(
+        &self,
+        round: u64,
+        global: &NamedTensors,
+        config: &RunConfig,
+        dir: &Path,
+    ) -> Result<EvalMetrics, BoxError> {
         if config.rollout_episodes == 0 {
-            return Ok(());
+            return Ok(EvalMetrics::new());
         }
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
@@ -246,7 +302,11 @@ impl ModelExporter for SimRollouts {
             mean_length = summary.mean_length,
             "global model rolled out in the sim"
         );
-        Ok(())
+        Ok(EvalMetrics::from([
+            ("success_rate".to_owned(), summary.success_rate),
+            ("rollout_episodes".to_owned(), summary.episodes.len() as f64),
+            ("rollout_mean_length".to_owned(), summary.mean_length),
+        ]))
     }
 }
 
@@ -262,11 +322,17 @@ struct LeRobotExport {
 }
 
 impl ModelExporter for LeRobotExport {
-    fn export(&self, _round: u64, global: &NamedTensors, _config: &RunConfig, dir: &Path) -> Result<(), BoxError> {
+    fn export(
+        &self,
+        _round: u64,
+        global: &NamedTensors,
+        _config: &RunConfig,
+        dir: &Path,
+    ) -> Result<EvalMetrics, BoxError> {
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
         export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, Backbone::Generated(&self.tokenizer))?;
-        Ok(())
+        Ok(EvalMetrics::new())
     }
 }
 
@@ -324,6 +390,7 @@ impl Workload for SmolVlaWorkload {
         let path = self
             .client_shards
             .get(shard)
+            .and_then(|s| s.file.as_ref())
             .ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
         let examples = self.examples(path)?;
         // Each client draws its own noise and times, reproducibly.

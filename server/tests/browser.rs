@@ -52,9 +52,9 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
     std::thread::spawn(move || {
         tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
             let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
-            let setup = transport.fetch_setup("native-0").await.unwrap();
+            let setup = transport.fetch_setup("native-0", None).await.unwrap();
             let mut trainer = smolvla_volunteer(&transport, &setup, "native-0").await.unwrap();
-            let options = ClientOptions { name: "native-0".into(), auth_token: None };
+            let options = ClientOptions { name: "native-0".into(), auth_token: None, shard: Some(setup.shard_index) };
             run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap();
         })
     })

@@ -15,20 +15,25 @@ use fedvla_server::run_dir::RunDir;
 #[tokio::test]
 async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     let base = tempfile::tempdir().unwrap();
-    let cfg = config("num-server-rounds=1 min-clients=5 min-fit=2 round-deadline-ms=1500");
+    let cfg = config("num-server-rounds=1 num-clients=5 min-clients=5 min-fit=2 round-deadline-ms=1500");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     let good: Vec<_> = (0..2).map(|shard| spawn_client(&handle, shard, None)).collect();
     let (straggler, _) = spawn_client(&handle, 2, Some(1));
     // A client that takes its task and disconnects without answering.
     let (mut dropper, _) = RawClient::join(&handle, "client-3").await;
-    // A client that uploads its update, then disconnects before the round closes: its update still counts.
-    let (mut leaver, _) = RawClient::join(&handle, "client-4").await;
+    // A client that uploads its update, then disconnects before the round closes: its update still counts, with
+    // the weight of its shard, not the 10 examples it claims.
+    let (mut leaver, _, _) = RawClient::join_shard(&handle, "client-4", Some(4)).await;
     let started = Instant::now();
     assert!(matches!(dropper.recv().await, Some(ServerMessage::RoundTask(_))));
     drop(dropper);
     let Some(ServerMessage::RoundTask(task)) = leaver.recv().await else { panic!("task") };
-    let leaver_update = TrainOutput { update: head(vec![0.25; FEATURES], vec![-0.5]), examples: 10, train_loss: 1.0 };
+    let leaver_update = TrainOutput {
+        update: head(vec![0.25; FEATURES], vec![-0.5]),
+        examples: linreg::train_examples(4) as u64,
+        train_loss: 1.0,
+    };
     let payload = encode_payload(&leaver_update.update);
     leaver
         .send(&ClientMessage::UpdateHeader {
@@ -56,6 +61,7 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     let status = handle.finish().await.unwrap();
     let elapsed = started.elapsed();
     assert_eq!(status.completed_rounds, 1);
+    assert_eq!(status.corrected_claims, 1, "the leaver's claim of 10 examples was corrected");
     assert!(elapsed >= Duration::from_millis(1400), "closed at the deadline, not before: {elapsed:?}");
     assert!(elapsed < Duration::from_secs(8), "closed at the deadline, not after: {elapsed:?}");
     straggler.abort();

@@ -111,7 +111,8 @@ fn spawn_clients(
             let thread = std::thread::spawn(move || {
                 tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
                     let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
-                    let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+                    let options =
+                        ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
                     run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
                 })
             });
@@ -208,14 +209,17 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     for index in 0..3 {
         let (manifest, bytes) = transport.fetch_shard(index).await.unwrap();
         assert_eq!(bytes.len() as u64, manifest.file_bytes);
-        assert_eq!(bytes, std::fs::read(&workload.volunteer_offer().unwrap().shards[index]).unwrap());
+        assert_eq!(
+            bytes,
+            std::fs::read(&workload.volunteer_offer().unwrap().shards[index].file.as_ref().unwrap()).unwrap()
+        );
         let shard = fedvla_data::ClientShard::from_bytes(Path::new(&manifest.file), &bytes).unwrap();
         assert_eq!(shard.manifest.client_index, index);
     }
     // Shards are assigned round-robin by volunteer name, and a returning name keeps its shard.
     let mut assigned = Vec::new();
     for name in ["ann", "bob", "cy", "dee", "bob", "ann"] {
-        assigned.push(transport.fetch_setup(name).await.unwrap().shard_index);
+        assigned.push(transport.fetch_setup(name, None).await.unwrap().shard_index);
     }
     assert_eq!(assigned, [0, 1, 2, 0, 1, 0]);
     let missing = transport.fetch_shard(3).await.unwrap_err().to_string();

@@ -28,13 +28,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     super::runtime()?.block_on(async move {
         let mut transport = NativeTransport::connect(&args.url).await.map_err(super::boxed)?;
         let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_server::console::random_token()[..6]));
-        let mut setup = transport.fetch_setup(&name).await.map_err(super::boxed)?;
-        if let Some(shard) = args.shard {
-            setup.shard_index = shard;
-            setup.shard_url = format!("/shard/{shard}");
-            setup.shard_manifest_url = format!("/shard/{shard}/manifest");
-        }
-        let options = ClientOptions { name, auth_token: args.auth_token };
+        let setup = transport.fetch_setup(&name, args.shard).await.map_err(super::boxed)?;
+        let options = ClientOptions { name, auth_token: args.auth_token, shard: Some(setup.shard_index) };
         tracing::info!(workload = %setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
         match setup.workload.as_str() {
             // The linreg shard is generated from its index (the partitioning only changes the data skew).

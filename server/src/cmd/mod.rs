@@ -7,6 +7,7 @@ mod join;
 mod parity;
 mod serve;
 mod simulate;
+mod train;
 
 use std::fs::File;
 use std::path::PathBuf;
@@ -33,6 +34,8 @@ pub enum Command {
     Join(join::Args),
     /// Run a server and N native clients in one process over loopback WebSockets.
     Simulate(simulate::Args),
+    /// Train the federation's centralized baseline: one trainer on every client's training episodes.
+    Train(train::Args),
     /// Roll a policy (or the scripted expert) out in the sim: success rate, videos, results.json.
     Eval(eval::Args),
     /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
@@ -46,6 +49,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Serve(args) => serve::run(args),
         Command::Join(args) => join::run(args),
         Command::Simulate(args) => simulate::run(args),
+        Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Parity(args) => parity::run(args),
         Command::GenData(args) => gen_data::run(args),

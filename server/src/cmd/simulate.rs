@@ -139,7 +139,8 @@ fn spawn_client<L: LocalTrainer + Send + 'static>(
     std::thread::spawn(move || {
         let client = async move {
             let mut transport = NativeTransport::connect(&url).await.map_err(super::boxed)?;
-            let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+            let options =
+                ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
             let summary = run_client(&mut transport, &mut trainer, &options, |event| match event {
                 ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
                 ClientEvent::Task { round, local_steps } => {

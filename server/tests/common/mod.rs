@@ -9,15 +9,15 @@ use std::time::Duration;
 
 use fedvla_federation::{
     BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, FedAvg, LocalTrainer,
-    NamedTensors, PROTOCOL_VERSION, RoundTask, ServerMessage, TrainOutput, run_client,
+    NamedTensors, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage, TrainOutput, run_client,
 };
 use fedvla_server::config::{Partitioning, RunConfig};
 use fedvla_server::coordinator::RunStatus;
-use fedvla_server::linreg::{self, LinRegEvaluator, LinRegTrainer};
+use fedvla_server::linreg::{self, LinRegEvaluator, LinRegTrainer, LinRegWorkload};
 use fedvla_server::native_client::NativeTransport;
 use fedvla_server::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::server::{self, ServerHandle, ServerParts};
-use fedvla_server::volunteer::VolunteerOffer;
+use fedvla_server::workload::Workload;
 use futures_util::{SinkExt, StreamExt};
 use tokio::net::TcpStream;
 use tokio::sync::Semaphore;
@@ -35,15 +35,16 @@ pub fn config(overrides: &str) -> RunConfig {
         .expect("test config is valid")
 }
 
+/// A server of the linreg workload (one shard per `num-clients`, weighing `linreg::train_examples`).
 pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
     let parts = ServerParts {
         initial: linreg::initial_model(config.seed),
+        volunteer: LinRegWorkload::from_config(&config).volunteer_offer().unwrap(),
         config,
         run_dir,
         strategy: Box::new(FedAvg),
         evaluator: Box::new(LinRegEvaluator::default()),
         exporters: Vec::new(),
-        volunteer: VolunteerOffer::bare("linreg"),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     server::start(parts, listener).unwrap()
@@ -145,7 +146,7 @@ pub fn spawn_trainer(
     let url = format!("ws://{}", handle.addr());
     tokio::spawn(async move {
         let mut transport = NativeTransport::connect(&url).await.expect("connect");
-        let options = ClientOptions { name: format!("client-{shard}"), auth_token: None };
+        let options = ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await
     })
 }
@@ -192,14 +193,47 @@ impl RawClient {
         Self { ws }
     }
 
-    /// Connects and joins with the current protocol version; returns the client and its id.
+    /// Connects and joins with the current protocol version, leaving the shard to the server; returns the client
+    /// and its id.
     pub async fn join(handle: &ServerHandle, name: &str) -> (Self, u64) {
+        let (c, client_id, _) = Self::join_shard(handle, name, None).await;
+        (c, client_id)
+    }
+
+    /// Connects and joins announcing `shard`; returns the client, its id and its upload session.
+    pub async fn join_shard(handle: &ServerHandle, name: &str, shard: Option<u32>) -> (Self, u64, String) {
         let mut c = Self::connect(handle).await;
-        c.send(&join_message(name, PROTOCOL_VERSION)).await;
+        let mut join = join_message(name, PROTOCOL_VERSION);
+        if let ClientMessage::Join { shard: announced, .. } = &mut join {
+            *announced = shard;
+        }
+        c.send(&join).await;
         match c.recv().await {
-            Some(ServerMessage::Welcome { client_id, .. }) => (c, client_id),
+            Some(ServerMessage::Welcome { client_id, session, .. }) => (c, client_id, session),
             other => panic!("expected welcome, got {other:?}"),
         }
+    }
+
+    /// Waits for the next round task (skipping other messages).
+    pub async fn task(&mut self) -> RoundTask {
+        loop {
+            match self.recv().await {
+                Some(ServerMessage::RoundTask(task)) => return task,
+                Some(_) => {}
+                None => panic!("closed before a task"),
+            }
+        }
+    }
+
+    /// Uploads `tensors` for `round` claiming `examples`, then reports the round's metrics.
+    pub async fn upload(&mut self, round: u64, tensors: &NamedTensors, examples: u64) {
+        let payload_bytes = fedvla_federation::codec::encode_payload(tensors).len() as u64;
+        self.send(&ClientMessage::UpdateHeader { round, examples, train_loss: 1.0, payload_bytes }).await;
+        for frame in fedvla_federation::codec::encode_update(tensors, round, 64) {
+            self.send_binary(frame).await;
+        }
+        let metrics = RoundMetrics { round, examples, train_loss: 1.0, seconds: 0.0, bytes_up: 0, bytes_down: 0 };
+        self.send(&ClientMessage::Metrics(metrics)).await;
     }
 
     pub async fn send(&mut self, msg: &ClientMessage) {
@@ -235,5 +269,36 @@ pub fn join_message(name: &str, protocol_version: u16) -> ClientMessage {
         auth_token: None,
         name: name.into(),
         capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
+        shard: None,
     }
+}
+
+/// A linreg head with every weight `weight` and bias `bias`.
+pub fn linreg_head(weight: f32, bias: f32) -> NamedTensors {
+    let mut t = NamedTensors::new();
+    t.insert(linreg::WEIGHT, vec![1, linreg::FEATURES], vec![weight; linreg::FEATURES]).unwrap();
+    t.insert(linreg::BIAS, vec![1], vec![bias]).unwrap();
+    t
+}
+
+/// One plain HTTP/1.1 request to the server; the status and body.
+pub async fn http(
+    handle: &ServerHandle,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: Vec<u8>,
+) -> (u16, String) {
+    use http_body_util::{BodyExt, Full};
+    let stream = TcpStream::connect(handle.addr()).await.unwrap();
+    let (mut sender, conn) = hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream)).await.unwrap();
+    tokio::spawn(conn);
+    let mut request = hyper::Request::builder().method(method).uri(path).header("host", "test");
+    for (k, v) in headers {
+        request = request.header(*k, *v);
+    }
+    let response = sender.send_request(request.body(Full::new(hyper::body::Bytes::from(body))).unwrap()).await.unwrap();
+    let status = response.status().as_u16();
+    let body = response.into_body().collect().await.unwrap().to_bytes();
+    (status, String::from_utf8_lossy(&body).into_owned())
 }

@@ -94,6 +94,8 @@ pub trait ClientTransport {
 pub struct ClientOptions {
     pub name: String,
     pub auth_token: Option<String>,
+    /// The shard this client trains on, announced on join (the server weighs its updates by that shard).
+    pub shard: Option<u32>,
 }
 
 /// Progress notifications, for progress bars and logs.
@@ -174,6 +176,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
         auth_token: options.auth_token.clone(),
         name: options.name.clone(),
         capabilities: trainer.capabilities(),
+        shard: options.shard,
     })
     .await?;
     let (client_id, max_frame_bytes, session) = match link.recv().await? {

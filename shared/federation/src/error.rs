@@ -84,4 +84,6 @@ pub enum AggregateError {
     ZeroExamples,
     #[error("update {index} does not match the global model: {source}")]
     Mismatch { index: usize, source: TensorError },
+    #[error("the aggregate is not a usable model: {0}")]
+    Aggregate(TensorError),
 }

@@ -4,7 +4,11 @@ use serde::{Deserialize, Serialize};
 
 /// Bumped on any incompatible change to the control messages or the binary update format.
 /// 2: volunteer setup, sessions for uploads, rollout requests and results.
-pub const PROTOCOL_VERSION: u16 = 2;
+/// 3: the join names the shard the client trains on; the server weighs updates by that shard, not by the claim.
+pub const PROTOCOL_VERSION: u16 = 3;
+
+/// Longest volunteer name, in bytes, the server accepts (on join and in `GET /api/volunteer?name=`).
+pub const MAX_NAME_BYTES: usize = 64;
 
 /// What a client runs on, so the server can plan tasks.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -36,9 +40,14 @@ pub enum ClientMessage {
     Join {
         protocol_version: u16,
         auth_token: Option<String>,
-        /// Stable name chosen by the volunteer; sampling and aggregation order follow it.
+        /// Stable name chosen by the volunteer (at most [`MAX_NAME_BYTES`]); sampling and aggregation order
+        /// follow it.
         name: String,
         capabilities: Capabilities,
+        /// The shard this client trains on (its setup's `shard_index`); `None` lets the server pick one for the
+        /// name. Updates are weighted by this shard's training examples, whatever their header claims.
+        #[serde(default)]
+        shard: Option<u32>,
     },
     /// Keep-alive for idle connections (e.g. behind proxies); the server only notes it.
     Heartbeat,
@@ -155,12 +164,22 @@ pub enum ErrorCode {
     UnexpectedMessage,
     StaleRound,
     ShuttingDown,
+    /// A volunteer name that is empty or longer than [`MAX_NAME_BYTES`].
+    InvalidName,
+    /// A join naming a shard the run does not have.
+    UnknownShard,
+    /// An update dropped after aggregation: the aggregate or its evaluation failed and this update was the one
+    /// farthest from the global model.
+    DroppedUpdate,
 }
 
 impl ErrorCode {
     /// Errors after which the server closes the connection.
     pub fn is_fatal(self) -> bool {
-        matches!(self, Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown)
+        matches!(
+            self,
+            Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown | Self::InvalidName | Self::UnknownShard
+        )
     }
 
     pub fn as_str(self) -> &'static str {
@@ -178,6 +197,9 @@ impl ErrorCode {
             Self::UnexpectedMessage => "unexpected_message",
             Self::StaleRound => "stale_round",
             Self::ShuttingDown => "shutting_down",
+            Self::InvalidName => "invalid_name",
+            Self::UnknownShard => "unknown_shard",
+            Self::DroppedUpdate => "dropped_update",
         }
     }
 }
@@ -223,6 +245,7 @@ mod tests {
             auth_token: None,
             name: "c0".into(),
             capabilities: Capabilities { backend: "ndarray".into(), memory_bytes: 1 << 30 },
+            shard: Some(2),
         };
         let json = serde_json::to_string(&join).unwrap();
         assert!(json.starts_with(&format!(r#"{{"type":"join","protocol_version":{PROTOCOL_VERSION}"#)), "{json}");
@@ -236,7 +259,9 @@ mod tests {
 
     #[test]
     fn code_strings_match_serde() {
-        for code in [ErrorCode::ProtocolVersion, ErrorCode::StaleRound, ErrorCode::MalformedFrame] {
+        for code in
+            [ErrorCode::ProtocolVersion, ErrorCode::StaleRound, ErrorCode::MalformedFrame, ErrorCode::DroppedUpdate]
+        {
             assert_eq!(serde_json::to_string(&code).unwrap(), format!("\"{}\"", code.as_str()));
         }
     }

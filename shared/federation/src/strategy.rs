@@ -20,7 +20,8 @@ pub trait Strategy {
     ) -> Result<NamedTensors, AggregateError>;
 }
 
-/// Federated averaging: the example-weighted mean of the clients' tensors, accumulated in f64.
+/// Federated averaging: the example-weighted mean of the clients' tensors, accumulated in f64. The example total
+/// is summed in u128, so no set of u64 weights can wrap it.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct FedAvg;
 
@@ -41,7 +42,7 @@ impl Strategy for FedAvg {
         for (index, (update, _)) in updates.iter().enumerate() {
             update.validate(&spec).map_err(|source| AggregateError::Mismatch { index, source })?;
         }
-        let total: u64 = updates.iter().map(|(_, n)| n).sum();
+        let total: u128 = updates.iter().map(|(_, n)| u128::from(*n)).sum();
         if total == 0 {
             return Err(AggregateError::ZeroExamples);
         }
@@ -58,6 +59,8 @@ impl Strategy for FedAvg {
             let values = acc.into_iter().map(|a| (a / total as f64) as f32).collect();
             out.insert(name, t.shape.clone(), values).expect("shape taken from the global model");
         }
+        // Finite inputs average to finite values; the check keeps that promise for every strategy's output.
+        out.validate(&spec).map_err(AggregateError::Aggregate)?;
         Ok(out)
     }
 }
@@ -87,6 +90,18 @@ mod tests {
         let updates = [(one([1.0e8, 1.0]), 1), (one([1.0, 1.0e8]), 1), (one([-1.0e8, -1.0e8]), 1)];
         let out = FedAvg.aggregate(&global, &updates).unwrap();
         assert_eq!(out.get("w").unwrap().values, vec![1.0 / 3.0, 1.0 / 3.0]);
+    }
+
+    #[test]
+    fn fedavg_example_total_cannot_wrap() {
+        // 2^63 + 2^63 wraps a u64 sum to 0; the weights are equal, so the mean is the midpoint.
+        let global = one([0.0, 0.0]);
+        let updates = [(one([1.0, 2.0]), 1 << 63), (one([3.0, 4.0]), 1 << 63)];
+        let out = FedAvg.aggregate(&global, &updates).unwrap();
+        assert_eq!(out.get("w").unwrap().values, vec![2.0, 3.0]);
+        let updates = [(one([1.0, 2.0]), u64::MAX - 46), (one([3.0, 4.0]), 48)];
+        let out = FedAvg.aggregate(&global, &updates).unwrap();
+        assert!(out.get("w").unwrap().values.iter().all(|v| v.is_finite()));
     }
 
     #[test]

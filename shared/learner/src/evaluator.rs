@@ -22,7 +22,7 @@ impl HeldOutEvaluator {
     pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, examples: ShardExamples, device: &Device) -> Self {
         let store = ParamStore::upload(weights.iter(), device, false);
         let held_out = HeldOut::new(&examples.held_out_rows);
-        Self { model: SmolVla::new(cfg, &store, &store), examples, held_out, device: device.clone() }
+        Self { model: SmolVla::new(cfg, &store), examples, held_out, device: device.clone() }
     }
 }
 

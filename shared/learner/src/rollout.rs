@@ -47,7 +47,7 @@ impl SimPolicy {
         fedvla_policy::weights::check_keys(&cfg.param_specs(), weights, "rollout policy")?;
         let tokens = tokenizer.encode_batch(&[TASK], cfg.tokenizer_max_length, cfg.pad_language_to == "max_length")?;
         let store = ParamStore::upload(weights.iter(), device, false);
-        Self::from_model(SmolVla::new(cfg, &store, &store), stats, tokens)
+        Self::from_model(SmolVla::new(cfg, &store), stats, tokens)
     }
 
     /// A model already on its device (without autodiff) as a sim policy, with the sim's task tokenised.

@@ -55,7 +55,7 @@ impl SmolVlaTrainer {
         let held_out = HeldOut::new(&examples.held_out_rows);
         Ok(Self {
             trainer,
-            global_cpu: SmolVla::new(cfg, &store, &store),
+            global_cpu: SmolVla::new(cfg, &store),
             examples,
             held_out,
             backend: backend.into(),

@@ -43,7 +43,7 @@ fn main() {
         }
         let device = Device::flex();
         let store = ParamStore::upload(weights.iter(), &device, false);
-        let model = SmolVla::new(&cfg, &store, &store);
+        let model = SmolVla::new(&cfg, &store);
         let data = Batch::random(&cfg, 1, rng.random());
         let obs = Prepared::new(&cfg, &data, &device).unwrap();
         let times: Vec<f64> = (0..5)

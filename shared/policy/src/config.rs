@@ -1,7 +1,8 @@
 //! SmolVLA configuration: the policy fields LeRobot writes to `config.json`, the SmolVLM2 backbone
 //! fields it reads from `vlm/config.json`, the derived action-expert sizes, named presets
-//! (`base`, `small`, `tiny`) and the full list of checkpoint tensors (names, shapes, trainability)
-//! that every loader, exporter and optimizer in this crate is driven by.
+//! (`base`, `small`, `tiny`) and the full list of checkpoint tensors (names, shapes, and which of
+//! them LeRobot's `freeze_vision_encoder` / `train_expert_only` / `train_state_proj` switches
+//! train) that every loader, exporter and optimizer in this crate is driven by.
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value, json};
@@ -107,6 +108,12 @@ pub struct SmolVlaConfig {
     pub scheduler_decay_lr: f64,
     /// Where LeRobot finds the backbone config and tokenizer (a Hub id or a local folder).
     pub vlm_model_name: String,
+    /// What is trained, LeRobot's switches (its defaults: all three true). `train_expert_only` freezes the whole
+    /// backbone; without it the backbone trains too, but for the vision tower when `freeze_vision_encoder`, and
+    /// always but for the last text layer, the final norm and `lm_head` (their outputs feed nothing).
+    pub freeze_vision_encoder: bool,
+    pub train_expert_only: bool,
+    pub train_state_proj: bool,
 }
 
 /// Sizes of the action expert, derived from the text config as LeRobot derives them.
@@ -261,7 +268,36 @@ impl SmolVlaConfig {
             scheduler_decay_steps: 30000,
             scheduler_decay_lr: 2.5e-6,
             vlm_model_name: "vlm".into(),
+            freeze_vision_encoder: true,
+            train_expert_only: true,
+            train_state_proj: true,
         }
+    }
+
+    /// The same policy on square `size` x `size` camera inputs cut into `patch` x `patch` patches (the vision
+    /// tower's position embedding follows the patch grid).
+    pub fn with_image_size(mut self, size: usize, patch: usize) -> Self {
+        self.vlm.vision_config.image_size = size;
+        self.vlm.vision_config.patch_size = patch;
+        self.resize_imgs_with_padding = (size, size);
+        for f in self.input_features.iter_mut().filter(|f| f.kind == "VISUAL") {
+            f.shape = vec![3, size, size];
+        }
+        self
+    }
+
+    /// The same policy predicting chunks of `chunk` actions and executing `n_action_steps` of each.
+    pub fn with_action_chunk(mut self, chunk: usize, n_action_steps: usize) -> Self {
+        self.chunk_size = chunk;
+        self.n_action_steps = n_action_steps;
+        self
+    }
+
+    /// The same policy training what LeRobot's switches say (see [`SmolVlaConfig::train_expert_only`]).
+    pub fn with_trained_parts(mut self, freeze_vision_encoder: bool, train_expert_only: bool) -> Self {
+        self.freeze_vision_encoder = freeze_vision_encoder;
+        self.train_expert_only = train_expert_only;
+        self
     }
 
     fn with_pad_language_to(mut self, pad: &str) -> Self {
@@ -368,14 +404,23 @@ impl SmolVlaConfig {
         if self.self_attn_every_n_layers == 0 {
             return bad("self_attn_every_n_layers must be >= 1".into());
         }
+        if self.chunk_size == 0 || self.n_action_steps == 0 || self.n_action_steps > self.chunk_size {
+            return bad(format!(
+                "n_action_steps {} must be in 1..=chunk_size {}",
+                self.n_action_steps, self.chunk_size
+            ));
+        }
         Ok(())
     }
 
-    /// Every tensor of the checkpoint, in LeRobot's module order.
+    /// Every tensor of the checkpoint, in LeRobot's module order, marked trainable as LeRobot's
+    /// `set_requires_grad` marks it under this configuration's switches.
     pub fn param_specs(&self) -> Vec<ParamSpec> {
         let mut specs = Vec::new();
         let mut add =
             |name: String, shape: Vec<usize>, trainable: bool| specs.push(ParamSpec { name, shape, trainable });
+        let backbone = !self.train_expert_only;
+        let vision = backbone && !self.freeze_vision_encoder;
         let v = &self.vlm.vision_config;
         let t = &self.vlm.text_config;
         let e = self.expert();
@@ -384,42 +429,43 @@ impl SmolVlaConfig {
         let q = t.num_attention_heads * t.head_dim;
 
         let vp = VISION_PREFIX;
-        add(format!("{vp}.embeddings.patch_embedding.weight"), vec![dv, 3, v.patch_size, v.patch_size], false);
-        add(format!("{vp}.embeddings.patch_embedding.bias"), vec![dv], false);
+        add(format!("{vp}.embeddings.patch_embedding.weight"), vec![dv, 3, v.patch_size, v.patch_size], vision);
+        add(format!("{vp}.embeddings.patch_embedding.bias"), vec![dv], vision);
         let patches = (v.image_size / v.patch_size).pow(2);
-        add(format!("{vp}.embeddings.position_embedding.weight"), vec![patches, dv], false);
+        add(format!("{vp}.embeddings.position_embedding.weight"), vec![patches, dv], vision);
         for n in 0..v.num_hidden_layers {
             let p = format!("{vp}.encoder.layers.{n}");
             for norm in ["layer_norm1", "layer_norm2"] {
-                add(format!("{p}.{norm}.weight"), vec![dv], false);
-                add(format!("{p}.{norm}.bias"), vec![dv], false);
+                add(format!("{p}.{norm}.weight"), vec![dv], vision);
+                add(format!("{p}.{norm}.bias"), vec![dv], vision);
             }
             for proj in ["q_proj", "k_proj", "v_proj", "out_proj"] {
-                add(format!("{p}.self_attn.{proj}.weight"), vec![dv, dv], false);
-                add(format!("{p}.self_attn.{proj}.bias"), vec![dv], false);
+                add(format!("{p}.self_attn.{proj}.weight"), vec![dv, dv], vision);
+                add(format!("{p}.self_attn.{proj}.bias"), vec![dv], vision);
             }
-            add(format!("{p}.mlp.fc1.weight"), vec![v.intermediate_size, dv], false);
-            add(format!("{p}.mlp.fc1.bias"), vec![v.intermediate_size], false);
-            add(format!("{p}.mlp.fc2.weight"), vec![dv, v.intermediate_size], false);
-            add(format!("{p}.mlp.fc2.bias"), vec![dv], false);
+            add(format!("{p}.mlp.fc1.weight"), vec![v.intermediate_size, dv], vision);
+            add(format!("{p}.mlp.fc1.bias"), vec![v.intermediate_size], vision);
+            add(format!("{p}.mlp.fc2.weight"), vec![dv, v.intermediate_size], vision);
+            add(format!("{p}.mlp.fc2.bias"), vec![dv], vision);
         }
-        add(format!("{vp}.post_layernorm.weight"), vec![dv], false);
-        add(format!("{vp}.post_layernorm.bias"), vec![dv], false);
-        add(CONNECTOR_KEY.into(), vec![dt, dv * self.vlm.scale_factor.pow(2)], false);
+        add(format!("{vp}.post_layernorm.weight"), vec![dv], vision);
+        add(format!("{vp}.post_layernorm.bias"), vec![dv], vision);
+        add(CONNECTOR_KEY.into(), vec![dt, dv * self.vlm.scale_factor.pow(2)], backbone);
 
         let tp = TEXT_PREFIX;
-        add(format!("{tp}.embed_tokens.weight"), vec![t.vocab_size, dt], false);
+        add(format!("{tp}.embed_tokens.weight"), vec![t.vocab_size, dt], backbone);
         for n in 0..self.num_vlm_layers {
             let p = format!("{tp}.layers.{n}");
-            add(format!("{p}.input_layernorm.weight"), vec![dt], false);
-            add(format!("{p}.self_attn.q_proj.weight"), vec![q, dt], false);
-            add(format!("{p}.self_attn.k_proj.weight"), vec![kv, dt], false);
-            add(format!("{p}.self_attn.v_proj.weight"), vec![kv, dt], false);
-            add(format!("{p}.self_attn.o_proj.weight"), vec![dt, q], false);
-            add(format!("{p}.post_attention_layernorm.weight"), vec![dt], false);
-            add(format!("{p}.mlp.gate_proj.weight"), vec![t.intermediate_size, dt], false);
-            add(format!("{p}.mlp.up_proj.weight"), vec![t.intermediate_size, dt], false);
-            add(format!("{p}.mlp.down_proj.weight"), vec![dt, t.intermediate_size], false);
+            let trained = backbone && n + 1 < self.num_vlm_layers;
+            add(format!("{p}.input_layernorm.weight"), vec![dt], trained);
+            add(format!("{p}.self_attn.q_proj.weight"), vec![q, dt], trained);
+            add(format!("{p}.self_attn.k_proj.weight"), vec![kv, dt], trained);
+            add(format!("{p}.self_attn.v_proj.weight"), vec![kv, dt], trained);
+            add(format!("{p}.self_attn.o_proj.weight"), vec![dt, q], trained);
+            add(format!("{p}.post_attention_layernorm.weight"), vec![dt], trained);
+            add(format!("{p}.mlp.gate_proj.weight"), vec![t.intermediate_size, dt], trained);
+            add(format!("{p}.mlp.up_proj.weight"), vec![t.intermediate_size, dt], trained);
+            add(format!("{p}.mlp.down_proj.weight"), vec![dt, t.intermediate_size], trained);
         }
         add(format!("{tp}.norm.weight"), vec![dt], false);
         add(LM_HEAD_KEY.into(), vec![t.vocab_size, dt], false);
@@ -448,8 +494,9 @@ impl SmolVlaConfig {
             ([de, de], de),
         ];
         for (name, (w, b)) in PROJECTIONS.iter().zip(shapes) {
-            add(format!("{name}.weight"), w.to_vec(), true);
-            add(format!("{name}.bias"), vec![b], true);
+            let trained = self.train_state_proj || *name != "model.state_proj";
+            add(format!("{name}.weight"), w.to_vec(), trained);
+            add(format!("{name}.bias"), vec![b], trained);
         }
         specs
     }
@@ -478,6 +525,15 @@ impl SmolVlaConfig {
             let a = obj.get(k).and_then(Value::as_array).filter(|a| a.len() == 2);
             let a = a.ok_or_else(|| PolicyError::Config(format!("config.json: {k:?} must be a 2-element list")))?;
             Ok((a[0].as_f64().unwrap_or(f64::NAN), a[1].as_f64().unwrap_or(f64::NAN)))
+        };
+        // LeRobot's defaults when absent.
+        let flag = |k: &str| -> Result<bool, PolicyError> {
+            match obj.get(k) {
+                None => Ok(true),
+                Some(v) => {
+                    v.as_bool().ok_or_else(|| PolicyError::Config(format!("config.json: {k:?} must be a boolean")))
+                }
+            }
         };
         let features = |k: &str| -> Result<Vec<Feature>, PolicyError> {
             let map = obj
@@ -544,6 +600,9 @@ impl SmolVlaConfig {
             scheduler_decay_steps: uint("scheduler_decay_steps")?,
             scheduler_decay_lr: num("scheduler_decay_lr")?,
             vlm_model_name: string("vlm_model_name")?,
+            freeze_vision_encoder: flag("freeze_vision_encoder")?,
+            train_expert_only: flag("train_expert_only")?,
+            train_state_proj: flag("train_state_proj")?,
         };
         cfg.validate()?;
         Ok(cfg)
@@ -585,9 +644,9 @@ impl SmolVlaConfig {
             "tokenizer_max_length": self.tokenizer_max_length,
             "num_steps": self.num_steps,
             "use_cache": true,
-            "freeze_vision_encoder": true,
-            "train_expert_only": true,
-            "train_state_proj": true,
+            "freeze_vision_encoder": self.freeze_vision_encoder,
+            "train_expert_only": self.train_expert_only,
+            "train_state_proj": self.train_state_proj,
             "optimizer_lr": self.optimizer_lr,
             "optimizer_betas": [self.optimizer_betas.0, self.optimizer_betas.1],
             "optimizer_eps": self.optimizer_eps,

@@ -194,7 +194,7 @@ fn recompute(
     // Inference model without autodiff: traces, vision, sampling.
     let plain = device.clone().without_autodiff();
     let store = ParamStore::upload(weights.iter(), &plain, false);
-    let model = SmolVla::new(cfg, &store, &store);
+    let model = SmolVla::new(cfg, &store);
     let obs = Prepared::new(cfg, batch, &plain)?;
     for (key, img) in cams.iter().zip(&batch.images) {
         out.insert(format!("prepared.images.{key}"), AnyTensor::from_host(&prepare_image(img, tw, th)));

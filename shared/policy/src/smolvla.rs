@@ -10,12 +10,14 @@ use crate::config::SmolVlaConfig;
 use crate::vlm_with_expert::{ActionExpert, PrefixKv, PrefixLayout, SuffixLayout, Trace, Vlm, encode_prefix};
 use crate::weights::ParamStore;
 
-/// SmolVLA: the frozen VLM and the trainable expert side by side.
+/// SmolVLA: the VLM and the action expert side by side.
 #[derive(Debug, Clone)]
 pub struct SmolVla {
     pub cfg: SmolVlaConfig,
     pub vlm: Vlm,
     pub expert: ActionExpert,
+    /// Every tensor the model was built from, so that the trained ones can be swapped in.
+    store: ParamStore,
 }
 
 /// The prefix of one observation batch: keys/values per layer plus its masks.
@@ -70,19 +72,23 @@ pub fn time_embedding(time: &[f32], dim: usize, min_period: f64, max_period: f64
 }
 
 impl SmolVla {
-    /// Builds the model from a store of frozen tensors and a store of trainable ones (which may be
-    /// autodiff leaves on the same device).
-    pub fn new(cfg: &SmolVlaConfig, frozen: &ParamStore, trainable: &ParamStore) -> Self {
-        Self { cfg: cfg.clone(), vlm: Vlm::load(frozen, cfg), expert: ActionExpert::load(trainable, cfg) }
+    /// Builds the model from a store holding every tensor of `cfg` (the trainable ones may be autodiff leaves).
+    pub fn new(cfg: &SmolVlaConfig, store: &ParamStore) -> Self {
+        Self {
+            cfg: cfg.clone(),
+            vlm: Vlm::load(store, cfg),
+            expert: ActionExpert::load(store, cfg),
+            store: store.clone(),
+        }
     }
 
     pub fn device(&self) -> Device {
         self.vlm.device()
     }
 
-    /// Rebuilds only the trainable part (after an optimizer step or a new global model).
+    /// The model with `trainable`'s tensors in place of its own (after an optimizer step or a new global model).
     pub fn with_trainable(&self, trainable: &ParamStore) -> Self {
-        Self { cfg: self.cfg.clone(), vlm: self.vlm.clone(), expert: ActionExpert::load(trainable, &self.cfg) }
+        Self::new(&self.cfg, &self.store.overlaid(trainable))
     }
 
     /// Connector outputs per camera (unscaled), for inspection and for the prefix.

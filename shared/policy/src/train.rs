@@ -1,7 +1,8 @@
 //! Training SmolVLA's trainable set exactly as LeRobot does: AdamW (torch semantics, decoupled
-//! weight decay) over the expert and the five projections only, global grad-norm clipping, the
-//! cosine-with-warmup schedule, and seeded Beta(1.5, 1) time / Gaussian noise sampling.
-//! The frozen tensors live in a separate store that no optimizer ever sees.
+//! weight decay) over the tensors the configuration's switches train (by default the expert and the
+//! five projections), global grad-norm clipping, the cosine-with-warmup schedule, and seeded
+//! Beta(1.5, 1) time / Gaussian noise sampling. The frozen tensors live in a separate store that no
+//! optimizer ever sees.
 
 use std::collections::BTreeMap;
 
@@ -102,7 +103,7 @@ impl Trainer {
             ParamStore::upload(weights.iter().filter(|(k, _)| !trainable_names.contains(k.as_str())), device, false);
         let trainable_store =
             ParamStore::upload(weights.iter().filter(|(k, _)| trainable_names.contains(k.as_str())), device, true);
-        let model = SmolVla::new(cfg, &frozen, &trainable_store);
+        let model = SmolVla::new(cfg, &frozen.overlaid(&trainable_store));
         let trainable = trainable_store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
         Ok(Self {
             model,

@@ -1,12 +1,13 @@
-//! LeRobot's `SmolVLMWithExpertModel`: the frozen, truncated SmolVLM (vision tower, connector,
-//! token embeddings, first N text layers) and the trainable action expert whose layers run beside
-//! the text layers — joint self-attention on even layers, cross-attention into the VLM's (RoPE'd)
-//! keys and values on odd ones.
+//! LeRobot's `SmolVLMWithExpertModel`: the truncated SmolVLM (vision tower, connector, token
+//! embeddings, first N text layers; frozen by default) and the action expert whose layers run
+//! beside the text layers — joint self-attention on even layers, cross-attention into the VLM's
+//! (RoPE'd) keys and values on odd ones.
 //!
 //! The prefix is computed in two parts. Image and language tokens never attend to the state token
-//! (mask rule), so their hidden states depend on frozen weights only: they run without any
-//! trainable tensor, hence without an autodiff graph. The single state token row runs through the
-//! same frozen layers with a graph, so `state_proj` receives its exact gradient.
+//! (mask rule), so their hidden states depend on the backbone and the frame only: with a frozen
+//! backbone they run without any trainable tensor, hence without an autodiff graph (a trained
+//! backbone gives them one). The single state token row runs through the same layers with a
+//! graph, so `state_proj` receives its exact gradient.
 
 use burn::tensor::{Int, Tensor, TensorData};
 

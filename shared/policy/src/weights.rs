@@ -188,6 +188,13 @@ impl ParamStore {
         Self { tensors }
     }
 
+    /// This store with `other`'s tensors added, replacing any of the same name.
+    pub fn overlaid(&self, other: &ParamStore) -> Self {
+        let mut tensors = self.tensors.clone();
+        tensors.extend(other.tensors.iter().map(|(k, v)| (k.clone(), v.clone())));
+        Self { tensors }
+    }
+
     /// The tensor `name` in its checkpoint shape. Panics on an unknown name: every name asked for
     /// comes from `SmolVlaConfig::param_specs`, which the loader has already checked against.
     pub fn get<const D: usize>(&self, name: &str) -> Tensor<D> {

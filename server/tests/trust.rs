@@ -1,0 +1,275 @@
+//! What a stranger's input cannot do to the server: own or wrap the aggregate with example claims, end the run
+//! with an update that breaks the aggregate, hold sockets open, grow its memory, upload files nobody asked for,
+//! or swap volunteers' shards across a restart.
+
+mod common;
+
+use std::time::Duration;
+
+use common::*;
+use fedvla_federation::{ErrorCode, Evaluator, FedAvg, ServerMessage, Strategy, TrainOutput};
+use fedvla_server::linreg::{self, LinRegEvaluator};
+use fedvla_server::run_dir::{RunDir, VOLUNTEERS_FILE};
+use fedvla_server::volunteer::Registry;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// The weight of shard `k`'s updates: what the server knows the shard holds.
+fn weight(k: usize) -> u64 {
+    linreg::train_examples(k) as u64
+}
+
+#[tokio::test]
+async fn example_claims_neither_wrap_nor_own_the_aggregate() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=1");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    // Two clients claim 2^63 examples each: summed in a u64 that wraps to 0 ("zero examples") and used to end the
+    // run. A third trains normally.
+    let (mut a, _, _) = RawClient::join_shard(&handle, "client-0", Some(0)).await;
+    let (mut b, _, _) = RawClient::join_shard(&handle, "client-1", Some(1)).await;
+    let (normal, recorded) = spawn_client(&handle, 2, None);
+    let round = a.task().await.round;
+    b.task().await;
+    let (ua, ub) = (linreg_head(1.0, 0.5), linreg_head(-2.0, 1.5));
+    a.upload(round, &ua, 1 << 63).await;
+    b.upload(round, &ub, 1 << 63).await;
+
+    let status = handle.finish().await.unwrap();
+    normal.await.unwrap().unwrap();
+    assert_eq!(status.completed_rounds, 1);
+    assert_eq!(status.corrected_claims, 2);
+    let normal_update = recorded.lock().unwrap()[0].1.clone();
+    assert_eq!(normal_update.examples, weight(2), "an honest claim is the shard's size");
+    let expected = weighted_mean(&[
+        TrainOutput { update: ua, examples: weight(0), train_loss: 1.0 },
+        TrainOutput { update: ub, examples: weight(1), train_loss: 1.0 },
+        normal_update,
+    ]);
+    assert_close(&run_dir.load_model(1).unwrap(), &expected, 1e-6);
+    let line = &metrics(run_dir.path())[1];
+    let client = |name: &str| line["clients"].as_array().unwrap().iter().find(|c| c["name"] == name).unwrap().clone();
+    assert_eq!(client("client-0")["examples"], weight(0));
+    assert_eq!(client("client-0")["claimed_examples"], 1u64 << 63);
+}
+
+#[tokio::test]
+async fn a_lone_client_claiming_zero_examples_still_closes_the_round() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=1 min-clients=1 min-fit=1");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let (mut c, _, _) = RawClient::join_shard(&handle, "zero", Some(1)).await;
+    let round = c.task().await.round;
+    let update = linreg_head(0.5, -0.5);
+    c.upload(round, &update, 0).await;
+    let status = handle.finish().await.unwrap();
+    assert_eq!((status.completed_rounds, status.skipped_rounds, status.corrected_claims), (1, 0, 1));
+    assert_eq!(run_dir.load_model(1).unwrap(), update);
+}
+
+/// An update whose values are near f32's largest: its aggregate is finite, but the held-out evaluation of it
+/// overflows.
+fn overflowing_update() -> fedvla_federation::NamedTensors {
+    linreg_head(f32::MAX / 2.0, f32::MAX / 2.0)
+}
+
+#[tokio::test]
+async fn an_update_that_breaks_the_evaluation_is_dropped_and_the_rest_aggregated() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=1 min-clients=3 min-fit=2");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let good: Vec<_> = (0..2).map(|shard| spawn_client(&handle, shard, None)).collect();
+    let (mut attacker, attacker_id, _) = RawClient::join_shard(&handle, "client-2", Some(2)).await;
+    let round = attacker.task().await.round;
+    attacker.upload(round, &overflowing_update(), weight(2)).await;
+
+    let status = handle.finish().await.unwrap();
+    assert_eq!((status.completed_rounds, status.skipped_rounds), (1, 0));
+    assert_eq!(status.rejections.get(&ErrorCode::DroppedUpdate), Some(&1));
+    let mut updates = Vec::new();
+    for (task, recorded) in good {
+        task.await.unwrap().unwrap();
+        updates.push(recorded.lock().unwrap()[0].1.clone());
+    }
+    // The premise: with the attacker in, the held-out loss of the aggregate is not finite.
+    let mut with_attacker: Vec<_> = updates.iter().map(|u| (u.update.clone(), u.examples)).collect();
+    with_attacker.push((overflowing_update(), weight(2)));
+    let broken = FedAvg.aggregate(&linreg::initial_model(0), &with_attacker).unwrap();
+    assert!(!LinRegEvaluator::default().evaluate(&broken).unwrap()["heldout_loss"].is_finite());
+
+    assert_close(&run_dir.load_model(1).unwrap(), &weighted_mean(&updates), 1e-6);
+    let line = &metrics(run_dir.path())[1];
+    let attacker_record =
+        line["clients"].as_array().unwrap().iter().find(|c| c["client_id"] == attacker_id).unwrap().clone();
+    assert_eq!(attacker_record["accepted"], false);
+    assert!(attacker_record["dropped"].as_str().unwrap().contains("non-finite"), "{attacker_record}");
+    assert!(line["global"]["heldout_loss"].as_f64().unwrap().is_finite());
+    assert_eq!(line["rejections"]["dropped_update"], 1);
+}
+
+#[tokio::test]
+async fn a_round_with_no_usable_aggregate_is_skipped_and_the_run_goes_on() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=2 min-clients=1 min-fit=1");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let (mut attacker, _, _) = RawClient::join_shard(&handle, "attacker", Some(0)).await;
+    let round = attacker.task().await.round;
+    attacker.upload(round, &overflowing_update(), weight(0)).await;
+    // Round 1 closes, skipped; the attacker leaves and an honest client takes round 2.
+    loop {
+        if let Some(ServerMessage::RoundClosed { round: 1, .. }) = attacker.recv().await {
+            break;
+        }
+    }
+    drop(attacker);
+    let (honest, recorded) = spawn_client(&handle, 1, None);
+    let status = handle.finish().await.unwrap();
+    honest.await.unwrap().unwrap();
+    assert_eq!((status.completed_rounds, status.skipped_rounds), (2, 1));
+    let lines = metrics(run_dir.path());
+    assert!(lines[1]["skipped"].as_str().unwrap().contains("non-finite"), "{}", lines[1]);
+    assert_eq!(run_dir.load_model(1).unwrap(), linreg::initial_model(0), "a skipped round keeps the model");
+    let (round, update) = recorded.lock().unwrap()[0].clone();
+    assert_eq!(round, 2);
+    assert_eq!(run_dir.load_model(2).unwrap(), update.update);
+}
+
+/// Whether the server closed `socket` within `within`: reads return end-of-file or an error.
+async fn closed_within(socket: &mut TcpStream, within: Duration) -> bool {
+    let mut buf = [0u8; 256];
+    loop {
+        match tokio::time::timeout(within, socket.read(&mut buf)).await {
+            Err(_) => return false,
+            Ok(Ok(0) | Err(_)) => return true,
+            // A 408 or similar before the close is fine.
+            Ok(Ok(_)) => {}
+        }
+    }
+}
+
+#[tokio::test]
+async fn slow_heads_silent_sockets_and_one_socket_too_many_are_closed() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("max-connections=4 header-read-timeout-ms=300 idle-timeout-ms=1000");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir).await;
+    let mut half_heads = Vec::new();
+    for _ in 0..2 {
+        let mut s = TcpStream::connect(handle.addr()).await.unwrap();
+        s.write_all(b"GET /api/volunteer HTTP/1.1\r\nHost: x\r\n").await.unwrap();
+        half_heads.push(s);
+    }
+    let mut silent = Vec::new();
+    for _ in 0..2 {
+        silent.push(TcpStream::connect(handle.addr()).await.unwrap());
+    }
+    // The cap is reached: a fifth socket is accepted and closed at once.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let mut fifth = TcpStream::connect(handle.addr()).await.unwrap();
+    assert!(closed_within(&mut fifth, Duration::from_millis(500)).await, "a socket over the cap is closed at once");
+    for s in &mut half_heads {
+        assert!(closed_within(s, Duration::from_secs(2)).await, "a half-sent head times out");
+    }
+    for s in &mut silent {
+        assert!(closed_within(s, Duration::from_secs(2)).await, "a silent socket times out");
+    }
+    // The server serves others all along and after.
+    let (status, body) = http(&handle, "GET", "/api/volunteer?name=after", &[], Vec::new()).await;
+    assert_eq!(status, 200, "{body}");
+    let token = format!("Bearer {}", handle.operator_token());
+    let (status, body) = http(&handle, "GET", "/console/api/snapshot", &[("authorization", &token)], Vec::new()).await;
+    assert_eq!(status, 200, "{body}");
+    let snapshot: serde_json::Value = serde_json::from_str(&body).unwrap();
+    assert!(snapshot["run"]["refused_connections"].as_u64().unwrap() >= 1, "{}", snapshot["run"]);
+    handle.kill();
+}
+
+#[tokio::test]
+async fn names_are_bounded_and_the_registry_forgets_the_oldest() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("max-volunteer-names=2");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let long = "n".repeat(65);
+    let (status, body) = http(&handle, "GET", &format!("/api/volunteer?name={long}"), &[], Vec::new()).await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("65 bytes"), "{body}");
+    let (status, body) = http(&handle, "GET", "/api/volunteer?name=x&shard=9", &[], Vec::new()).await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("no shard 9"), "{body}");
+
+    let mut c = RawClient::connect(&handle).await;
+    c.send(&join_message(&long, fedvla_federation::PROTOCOL_VERSION)).await;
+    match c.recv().await {
+        Some(ServerMessage::Error { code: ErrorCode::InvalidName, .. }) => {}
+        other => panic!("expected invalid_name, got {other:?}"),
+    }
+    assert_eq!(c.recv().await, None, "closed after an invalid name");
+
+    for name in ["a", "b", "c"] {
+        assert_eq!(http(&handle, "GET", &format!("/api/volunteer?name={name}"), &[], Vec::new()).await.0, 200);
+    }
+    let registry: Registry =
+        serde_json::from_slice(&std::fs::read(run_dir.path().join(VOLUNTEERS_FILE)).unwrap()).unwrap();
+    let names: Vec<&str> = registry.assignments.keys().map(String::as_str).collect();
+    assert_eq!(names, ["b", "c"], "at most two names, the first bound forgotten");
+    handle.kill();
+}
+
+#[tokio::test]
+async fn rollout_videos_are_taken_only_for_the_rollouts_a_round_asked_for() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=1 min-clients=1 min-fit=1 client-rollout-episodes=1");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let (mut c, client_id, session) = RawClient::join_shard(&handle, "filmer", Some(0)).await;
+    let auth = format!("Bearer {session}");
+    let post = async |round: u64, file: &str| {
+        http(&handle, "POST", &format!("/rollout/{round}/{file}"), &[("authorization", &auth)], vec![1; 64]).await
+    };
+    let task = c.task().await;
+    assert_eq!(task.rollout.as_ref().map(|r| r.episodes), Some(1));
+    assert_eq!(post(task.round + 4, "e.webm").await.0, 403, "a round that asked for nothing");
+    let (status, body) = post(task.round, "e.webm").await;
+    assert_eq!(status, 201, "{body}");
+    let (status, body) = post(task.round, "f.webm").await;
+    assert_eq!(status, 403, "one episode asked, one video taken: {body}");
+    c.upload(task.round, &linreg_head(0.1, 0.1), weight(0)).await;
+    handle.finish().await.unwrap();
+    assert!(run_dir.client_eval_dir(task.round, client_id).join("e.webm").exists());
+    assert!(!run_dir.client_eval_dir(task.round, client_id).join("f.webm").exists());
+}
+
+#[tokio::test]
+async fn shards_and_client_ids_survive_a_restart() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let shard_of = async |handle: &fedvla_server::server::ServerHandle, name: &str| -> u32 {
+        let (status, body) = http(handle, "GET", &format!("/api/volunteer?name={name}"), &[], Vec::new()).await;
+        assert_eq!(status, 200, "{body}");
+        serde_json::from_str::<fedvla_federation::VolunteerSetup>(&body).unwrap().shard_index
+    };
+    let handle = start(cfg.clone(), run_dir.clone()).await;
+    let mut before = Vec::new();
+    for name in ["x", "y", "z"] {
+        before.push(shard_of(&handle, name).await);
+    }
+    assert_eq!(before, [0, 1, 2]);
+    let (_c, first_id) = RawClient::join(&handle, "w").await;
+    handle.kill();
+
+    let (run_dir, cfg) = RunDir::open(run_dir.path()).unwrap();
+    let handle = start(cfg, run_dir).await;
+    // Asked in the other order, each name gets its shard back.
+    for (name, shard) in [("z", 2), ("y", 1), ("x", 0)] {
+        assert_eq!(shard_of(&handle, name).await, shard, "{name}");
+    }
+    let (_c, second_id) = RawClient::join(&handle, "w").await;
+    assert!(second_id > first_id, "client ids are never handed out twice: {first_id} then {second_id}");
+    handle.kill();
+}

@@ -123,7 +123,8 @@ fn layout_matches_lerobot_v30() {
     // meta/info.json
     let info: Value =
         serde_json::from_str(&std::fs::read_to_string(root.join("meta/info.json")).expect("info.json")).expect("json");
-    let keys: Vec<&str> = info.as_object().expect("object").keys().map(String::as_str).collect();
+    let mut keys: Vec<&str> = info.as_object().expect("object").keys().map(String::as_str).collect();
+    keys.sort_unstable();
     let mut expected_keys = INFO_KEYS.to_vec();
     expected_keys.sort();
     assert_eq!(keys, expected_keys, "info.json keys");

@@ -2,14 +2,14 @@
 # Regenerates the multi-camera / non-square fixtures (and re-checks the public one) with LeRobot 0.6.1.
 # usage (as root): tests/lerobot-fixtures/make_all.sh [OUTDIR=/work/fixtures] [LEROBOT_ENV=/tmp/lerobot-env]
 set -eu
-HERE=$(cd "$(dirname "$0")" && pwd)
+HERE=$(cd "$(dirname "$0")" && pwd -P)
 ROOT=$(cd "$HERE/../.." && pwd)
 OUT=${1:-/work/fixtures}
 ENV=${LEROBOT_ENV:-/tmp/lerobot-env}
 T=${LEROBOT_CHECK:-$ROOT/../shared/tools/lerobot-check}
 PUB=${PUBLIC_FIXTURE:-$ROOT/../shared/fixtures/smolvla-tiny-a}
-T=$(cd "$T" && pwd); PUB=$(cd "$PUB" && pwd)
-mkdir -p "$OUT"; OUT=$(cd "$OUT" && pwd)
+T=$(cd "$T" && pwd -P); PUB=$(cd "$PUB" && pwd -P)
+mkdir -p "$OUT"; OUT=$(cd "$OUT" && pwd -P)
 export HOSTDIR="$HERE:$OUT:$PUB"
 mk() { name=$1; shift; "$T/run.sh" "$ENV" python3 "$HERE/make_fixture.py" "$OUT/$name" --force --vlm-src "$PUB/vlm" "$@"; }
 # 0. the public recipe again (must be bitwise equal to smolvla-tiny-a)

@@ -62,6 +62,29 @@ impl GenSummary {
     }
 }
 
+/// Beside a recorded dataset's metadata: the sim seed of every episode, so evaluations can use layouts the
+/// dataset never saw (LeRobot ignores the file).
+pub const SEEDS_FILE: &str = "meta/fedvla_seeds.json";
+
+/// What [`SEEDS_FILE`] holds.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RecordedSeeds {
+    /// Episode i was recorded from the scene of `seeds[i]`.
+    pub seeds: Vec<u64>,
+    /// Seeds the expert failed on (no episode).
+    pub skipped: Vec<u64>,
+}
+
+/// The seeds a dataset was recorded from, when `fedvla gen-data` (or the embedded default) recorded it.
+pub fn recorded_seeds(root: &Path) -> anyhow::Result<Option<RecordedSeeds>> {
+    let path = root.join(SEEDS_FILE);
+    match std::fs::read(&path) {
+        Ok(bytes) => Ok(Some(serde_json::from_slice(&bytes).with_context(|| format!("parsing {}", path.display()))?)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
+    }
+}
+
 /// The expert's episode on one seed, every frame with its state, action and camera images.
 struct RecordedEpisode {
     seed: u64,
@@ -121,6 +144,10 @@ pub fn generate_dataset(
         let (written, seeds) = written?;
         anyhow::Ok((written, seeds, skipped))
     })?;
+    let record = RecordedSeeds { seeds: seeds.clone(), skipped: skipped_seeds.clone() };
+    let path = written.root.join(SEEDS_FILE);
+    std::fs::write(&path, serde_json::to_vec_pretty(&record).expect("seeds serialize"))
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(GenSummary {
         root: written.root,
         episodes: written.total_episodes as usize,

@@ -96,6 +96,23 @@ impl RunDir {
         Ok(dir)
     }
 
+    /// Creates the run directory `path` itself (an experiment names its runs' folders) and writes the resolved
+    /// config; `path` must not exist yet.
+    pub fn create_at(path: &Path, config: &RunConfig) -> Result<Self, RunDirError> {
+        if let Some(parent) = path.parent() {
+            fs::create_dir_all(parent).map_err(io(parent))?;
+        }
+        fs::create_dir(path).map_err(io(path))?;
+        let dir = Self { path: path.to_owned() };
+        dir.write_config(config)?;
+        Ok(dir)
+    }
+
+    /// The run directory at `path`, for reading what it holds.
+    pub fn at(path: &Path) -> Self {
+        Self { path: path.to_owned() }
+    }
+
     /// Opens an existing run for `--resume`, with the config it was started with.
     pub fn open(path: &Path) -> Result<(Self, RunConfig), RunDirError> {
         let config = RunConfig::load(&path.join(CONFIG_FILE))?;
@@ -229,7 +246,7 @@ impl RunDir {
 }
 
 /// Writes `bytes` to `path` via a temporary file and a rename.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunDirError> {
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunDirError> {
     let tmp = path.with_extension("tmp");
     let mut file = File::create(&tmp).map_err(io(&tmp))?;
     file.write_all(bytes).map_err(io(&tmp))?;

@@ -10,7 +10,7 @@ use fedvla_data::RgbImage;
 use fedvla_data::video::{CameraVideoWriter, VideoEncoding};
 use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
 use fedvla_sim::{Camera, Expert, FPS, Scene, render};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
 /// ones no policy was trained on.
@@ -58,21 +58,21 @@ impl Default for SimEvalOptions {
 }
 
 /// An episode whose video could not be written; its result is still counted.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VideoError {
     pub episode: usize,
     pub message: String,
 }
 
 /// What results.json holds.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SimEvalSummary {
     pub episodes: Vec<EpisodeResult>,
     pub success_rate: f64,
     pub mean_length: f64,
     /// The policy's source, or "expert".
     pub policy: String,
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub video_errors: Vec<VideoError>,
 }
 

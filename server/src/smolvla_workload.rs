@@ -25,7 +25,7 @@ use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, Tokenizer
 use fedvla_sim::TASK;
 
 use crate::config::{Partitioning, RunConfig};
-use crate::datagen::{GenDataOptions, generate_dataset};
+use crate::datagen::{GenDataOptions, GenProgress, generate_dataset};
 use crate::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
 use crate::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
 use crate::volunteer::{ShardOffer, VolunteerOffer};
@@ -48,28 +48,46 @@ pub struct SmolVlaWorkload {
     seed: u64,
 }
 
-/// The dataset a run trains on: the configured path, recorded by the sim first when it is the
-/// embedded default and not there yet.
+/// The dataset a run trains on: the configured path, or for the embedded default its recording of
+/// `dataset-episodes` episodes at the policy's image size (`data/so100-sim/<N>ep_<S>px`, recorded by the sim's
+/// expert from seed 0 on first use, whatever the run's seed, so every run of that size shares it).
 fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathBuf> {
-    let root = PathBuf::from(&config.dataset);
+    if config.dataset != crate::config::EMBEDDED_DATASET {
+        let root = PathBuf::from(&config.dataset);
+        anyhow::ensure!(
+            root.join("meta/info.json").exists(),
+            "dataset {} not found (no meta/info.json); point `dataset` at a LeRobot dataset or use the embedded default {:?}",
+            root.display(),
+            crate::config::EMBEDDED_DATASET
+        );
+        return Ok(root);
+    }
+    let root = embedded_dataset(config, image_size);
     if root.join("meta/info.json").exists() {
         return Ok(root);
     }
-    anyhow::ensure!(
-        config.dataset == crate::config::EMBEDDED_DATASET,
-        "dataset {} not found (no meta/info.json); point `dataset` at a LeRobot dataset or use the embedded default {:?}",
-        root.display(),
-        crate::config::EMBEDDED_DATASET
-    );
-    eprintln!(
-        "recording the embedded SO-100 dataset ({} expert episodes) into {}",
-        config.dataset_episodes,
-        root.display()
-    );
-    let options =
-        GenDataOptions { episodes: config.dataset_episodes, seed: config.seed, image_size: image_size as u32 };
-    generate_dataset(&root, &options, |_| {})?;
+    if root.exists() {
+        // Left by a recording that was killed: it never finished, so it is no dataset.
+        std::fs::remove_dir_all(&root).with_context(|| format!("removing the unfinished {}", root.display()))?;
+    }
+    let bar = indicatif::ProgressBar::new(config.dataset_episodes as u64);
+    bar.set_style(indicatif::ProgressStyle::with_template(
+        "recording the embedded SO-100 dataset [{bar:30}] {pos}/{len} expert episodes {msg} ({elapsed})",
+    )?);
+    bar.println(format!("recording {} expert episodes into {}", config.dataset_episodes, root.display()));
+    let options = GenDataOptions { episodes: config.dataset_episodes, seed: 0, image_size: image_size as u32 };
+    generate_dataset(&root, &options, |event| match event {
+        GenProgress::Frame { total_frames, .. } => bar.set_message(format!("{total_frames} frames")),
+        GenProgress::EpisodeWritten { .. } => bar.inc(1),
+        GenProgress::Skipped { .. } => {}
+    })?;
+    bar.finish_and_clear();
     Ok(root)
+}
+
+/// Where the embedded default dataset of this many episodes at this image size lives.
+pub fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
+    Path::new(crate::config::EMBEDDED_DATASET).join(format!("{}ep_{image_size}px", config.dataset_episodes))
 }
 
 fn partition_strategy(p: Partitioning) -> PartitionStrategy {
@@ -286,6 +304,7 @@ impl ModelExporter for SimRollouts {
         let source = format!("global model of round {round}");
         let options = SimEvalOptions {
             episodes: config.rollout_episodes,
+            max_frames: config.rollout_max_frames as usize,
             video_size: Some(ROLLOUT_VIDEO_SIZE),
             ..SimEvalOptions::default()
         };

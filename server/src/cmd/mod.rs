@@ -2,6 +2,7 @@
 //! `pub fn run(args: Args) -> anyhow::Result<()>`, then add a variant to [`Command`] and an arm to [`run`].
 
 mod eval;
+mod experiment;
 mod gen_data;
 mod join;
 mod parity;
@@ -11,14 +12,14 @@ mod train;
 
 use std::fs::File;
 use std::path::PathBuf;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
 use clap::Subcommand;
-use fedvla_federation::BoxError;
 use fedvla_server::config::{RunConfig, WorkloadKind};
 use fedvla_server::linreg::LinRegWorkload;
 use fedvla_server::run_dir::RunDir;
+use fedvla_server::runs::{SHARDS_DIR, boxed};
 use fedvla_server::server::ServerParts;
 use fedvla_server::smolvla_workload::SmolVlaWorkload;
 use tracing_subscriber::filter::{EnvFilter, LevelFilter};
@@ -36,6 +37,8 @@ pub enum Command {
     Simulate(simulate::Args),
     /// Train the federation's centralized baseline: one trainer on every client's training episodes.
     Train(train::Args),
+    /// Run arms (centralized, federations) x seeds and report them with intervals.
+    Experiment(experiment::Args),
     /// Roll a policy (or the scripted expert) out in the sim: success rate, videos, results.json.
     Eval(eval::Args),
     /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
@@ -50,6 +53,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Join(args) => join::run(args),
         Command::Simulate(args) => simulate::run(args),
         Command::Train(args) => train::run(args),
+        Command::Experiment(args) => experiment::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Parity(args) => parity::run(args),
         Command::GenData(args) => gen_data::run(args),
@@ -89,23 +93,43 @@ fn server_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerPart
     }
 }
 
-/// Where a run keeps its clients' shards and the server's held-out shard.
-const SHARDS_DIR: &str = "shards";
-
-/// Library errors crossing trait objects, into anyhow.
-fn boxed(e: BoxError) -> anyhow::Error {
-    anyhow::anyhow!(e)
-}
-
-/// Logs to stderr at `stderr_level` (unless RUST_LOG says otherwise) and, at info, to `server.log`.
-fn init_tracing(log_file: Option<File>, stderr_level: LevelFilter) {
+/// Logs to stderr at `stderr_level` (unless RUST_LOG says otherwise) and, at info, to `log_file` (a run's
+/// `server.log`).
+fn init_tracing(log_file: Option<File>, stderr_level: LevelFilter) -> LogFile {
     let stderr_filter = EnvFilter::builder().with_default_directive(stderr_level.into()).from_env_lossy();
-    let file_layer =
-        log_file.map(|f| fmt::layer().with_ansi(false).with_writer(Mutex::new(f)).with_filter(LevelFilter::INFO));
+    let log = LogFile(Arc::new(Mutex::new(log_file)));
+    let file = log.clone();
     tracing_subscriber::registry()
         .with(fmt::layer().with_writer(std::io::stderr).with_filter(stderr_filter))
-        .with(file_layer)
+        .with(fmt::layer().with_ansi(false).with_writer(move || file.clone()).with_filter(LevelFilter::INFO))
         .init();
+    log
+}
+
+/// Where the info log goes: the current run's `server.log` (an experiment moves it from run to run), or nowhere.
+#[derive(Clone)]
+struct LogFile(Arc<Mutex<Option<File>>>);
+
+impl LogFile {
+    fn set(&self, file: File) {
+        *self.0.lock().expect("log file lock") = Some(file);
+    }
+}
+
+impl std::io::Write for LogFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match &mut *self.0.lock().expect("log file lock") {
+            Some(file) => file.write(buf),
+            None => Ok(buf.len()),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match &mut *self.0.lock().expect("log file lock") {
+            Some(file) => file.flush(),
+            None => Ok(()),
+        }
+    }
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {

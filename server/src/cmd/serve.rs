@@ -35,7 +35,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             (config, run_dir)
         }
     };
-    super::init_tracing(Some(run_dir.log_file()?), LevelFilter::INFO);
+    let _log = super::init_tracing(Some(run_dir.log_file()?), LevelFilter::INFO);
     tracing::info!(run_dir = %run_dir.path().display(), "run directory");
     let listen = config.listen.clone();
     let dir = run_dir.path().to_owned();

@@ -10,7 +10,7 @@ use fedvla_policy::{Batch, NormStats, PolicyError, SmolVla, SmolVlaConfig, Token
 use fedvla_sim::{Camera, JOINT_COUNT, Scene, TASK, render};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// The sim camera that feeds each policy camera: by name (`…top`, `…wrist`), else by slot order.
 fn camera_for(key: &str, slot: usize) -> Result<Camera, PolicyError> {
@@ -109,7 +109,7 @@ impl SimPolicy {
 }
 
 /// How an episode went.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EpisodeResult {
     pub seed: u64,
     pub success: bool,

@@ -1,0 +1,72 @@
+//! PNG plots of a figure per round: one line (the mean over seeds) and a shaded 95% band per arm.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use plotters::prelude::*;
+
+use super::stats::Interval;
+
+/// One arm's figure per round, over its seeds.
+pub struct Curve {
+    pub name: String,
+    /// (round, interval over the seeds that evaluated that round).
+    pub points: Vec<(u64, Interval)>,
+}
+
+impl Curve {
+    /// Per round, the mean and 95% interval over `runs` (each a list of (round, value)).
+    pub fn over_seeds(name: &str, runs: impl Iterator<Item = Vec<(u64, f64)>>) -> Self {
+        let mut by_round: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+        for run in runs {
+            for (round, value) in run {
+                by_round.entry(round).or_default().push(value);
+            }
+        }
+        let points = by_round.into_iter().filter_map(|(r, v)| Some((r, Interval::t(&v)?))).collect();
+        Self { name: name.to_owned(), points }
+    }
+}
+
+/// Draws `curves` into the PNG at `path` (800 x 480).
+pub fn plot_curves(path: &Path, title: &str, y_label: &str, curves: &[Curve]) -> anyhow::Result<()> {
+    let points = || curves.iter().flat_map(|c| c.points.iter());
+    let x_max = points().map(|(r, _)| *r).max().unwrap_or(1).max(1) as f64;
+    let y_min = points().map(|(_, i)| i.ci95_low).fold(f64::INFINITY, f64::min);
+    let y_max = points().map(|(_, i)| i.ci95_high).fold(f64::NEG_INFINITY, f64::max);
+    let (y_min, y_max) = if y_min.is_finite() && y_max > y_min { (y_min, y_max) } else { (0.0, 1.0) };
+    let pad = (y_max - y_min) * 0.05;
+    let root = BitMapBackend::new(path, (800, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(draw_error)?;
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(64)
+        .build_cartesian_2d(0f64..x_max, (y_min - pad)..(y_max + pad))
+        .map_err(draw_error)?;
+    chart.configure_mesh().x_desc("round").y_desc(y_label).draw().map_err(draw_error)?;
+    for (i, curve) in curves.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        let band: Vec<(f64, f64)> = curve
+            .points
+            .iter()
+            .map(|(r, c)| (*r as f64, c.ci95_high))
+            .chain(curve.points.iter().rev().map(|(r, c)| (*r as f64, c.ci95_low)))
+            .collect();
+        chart.draw_series(std::iter::once(Polygon::new(band, color.mix(0.2).filled()))).map_err(draw_error)?;
+        let line = curve.points.iter().map(|(r, c)| (*r as f64, c.mean));
+        chart
+            .draw_series(LineSeries::new(line, color.stroke_width(2)))
+            .map_err(draw_error)?
+            .label(&curve.name)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+    }
+    chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).draw().map_err(draw_error)?;
+    root.present().map_err(draw_error)?;
+    Ok(())
+}
+
+fn draw_error(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("drawing the plot: {e}")
+}

@@ -1,0 +1,264 @@
+//! An experiment's report from its finished runs: `report.json` ([`Report`]), `report.md` (its table) and the
+//! PNG plots of held-out loss and sim success per round (mean and 95% band per arm).
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+
+use super::plot::{Curve, plot_curves};
+use super::stats::Interval;
+use super::{ExperimentConfig, Mode, read_final};
+use crate::records::read_metrics;
+
+pub const REPORT_JSON: &str = "report.json";
+pub const REPORT_MD: &str = "report.md";
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    pub name: String,
+    /// Sim episodes per run in the final evaluation, on layouts of seeds from `eval_seed` on.
+    pub eval_episodes: usize,
+    pub eval_seed: u64,
+    pub arms: Vec<ArmReport>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ArmReport {
+    pub name: String,
+    pub mode: Mode,
+    pub seeds: Vec<u64>,
+    /// The last round's figures, mean and Student-t 95% interval over seeds.
+    #[serde(rename = "final")]
+    pub final_: FinalFigures,
+    /// Every run's final sim episodes pooled: successes of episodes, Wilson 95% interval.
+    pub success_pooled: Interval,
+    pub episodes: u64,
+    pub successes: u64,
+    /// Rounds until a run's per-round sim success first reached 90% of its final success (runs that never
+    /// succeed have none).
+    pub rounds_to_90pct: Option<Interval>,
+    pub train_seconds: Interval,
+    /// Mean length (frames at 30 fps) of the successful final episodes.
+    pub mean_success_length: Option<f64>,
+    /// Federated arms: their success over the centralized arm's, paired by seed.
+    pub ratio_to_centralized: Option<Ratio>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FinalFigures {
+    pub heldout_loss: Interval,
+    pub action_mse: Option<Interval>,
+    pub action_l1: Option<Interval>,
+    pub success_rate: Interval,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Ratio {
+    /// Mean and Student-t interval of the per-seed ratios.
+    pub ratio: Option<Interval>,
+    pub seeds_used: Vec<u64>,
+    /// Seeds where the centralized run succeeded nowhere: reported, not divided by.
+    pub seeds_without_centralized_success: Vec<u64>,
+}
+
+/// One run's figures, read back from its folder.
+struct RunFigures {
+    seed: u64,
+    heldout_loss: f64,
+    action_mse: Option<f64>,
+    action_l1: Option<f64>,
+    success_rate: f64,
+    successes: u64,
+    episodes: u64,
+    success_lengths: Vec<f64>,
+    train_seconds: f64,
+    /// Per evaluated round: (round, held-out loss, per-round sim success).
+    curve: Vec<(u64, f64, Option<f64>)>,
+}
+
+fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
+    let metrics = read_metrics(run)?;
+    let curve: Vec<(u64, f64, Option<f64>)> =
+        metrics.iter().filter_map(|l| l.global.as_ref().map(|g| (l.round, g.heldout_loss, g.success_rate))).collect();
+    let last = metrics
+        .iter()
+        .rev()
+        .find_map(|l| l.global.clone())
+        .with_context(|| format!("{}: no evaluated round", run.display()))?;
+    let final_eval = read_final(run)?;
+    let episodes = &final_eval.sim.episodes;
+    Ok(RunFigures {
+        seed,
+        heldout_loss: last.heldout_loss,
+        action_mse: last.action_mse,
+        action_l1: last.action_l1,
+        success_rate: final_eval.sim.success_rate,
+        successes: episodes.iter().filter(|e| e.success).count() as u64,
+        episodes: episodes.len() as u64,
+        success_lengths: episodes.iter().filter(|e| e.success).map(|e| e.length as f64).collect(),
+        train_seconds: final_eval.train_seconds,
+        curve,
+    })
+}
+
+/// Builds the report of every finished run of `config` and writes it into the experiment's folder.
+pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
+    let dir = config.dir();
+    let mut figures: BTreeMap<&str, Vec<RunFigures>> = BTreeMap::new();
+    for arm in &config.arms {
+        let runs = config
+            .seeds
+            .iter()
+            .filter(|&&seed| config.run_path(arm, seed).join(super::FINAL_FILE).exists())
+            .map(|&seed| run_figures(&config.run_path(arm, seed), seed))
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        figures.insert(&arm.name, runs);
+    }
+    let centralized = config.arms.iter().find(|a| a.mode == Mode::Centralized).map(|a| &figures[a.name.as_str()]);
+    let mut arms = Vec::new();
+    for arm in &config.arms {
+        let runs = &figures[arm.name.as_str()];
+        if runs.is_empty() {
+            continue;
+        }
+        let of = |f: fn(&RunFigures) -> f64| Interval::t(&runs.iter().map(f).collect::<Vec<_>>());
+        let of_opt = |f: fn(&RunFigures) -> Option<f64>| {
+            let values: Option<Vec<f64>> = runs.iter().map(f).collect();
+            values.and_then(|v| Interval::t(&v))
+        };
+        let (successes, episodes) = runs.iter().fold((0, 0), |(s, e), r| (s + r.successes, e + r.episodes));
+        let lengths: Vec<f64> = runs.iter().flat_map(|r| r.success_lengths.iter().copied()).collect();
+        let to_90: Vec<f64> = runs.iter().filter_map(rounds_to_90pct).collect();
+        arms.push(ArmReport {
+            name: arm.name.clone(),
+            mode: arm.mode,
+            seeds: runs.iter().map(|r| r.seed).collect(),
+            final_: FinalFigures {
+                heldout_loss: of(|r| r.heldout_loss).expect("runs is not empty"),
+                action_mse: of_opt(|r| r.action_mse),
+                action_l1: of_opt(|r| r.action_l1),
+                success_rate: of(|r| r.success_rate).expect("runs is not empty"),
+            },
+            success_pooled: Interval::wilson(successes, episodes).expect("every run has episodes"),
+            episodes,
+            successes,
+            rounds_to_90pct: Interval::t(&to_90),
+            train_seconds: of(|r| r.train_seconds).expect("runs is not empty"),
+            mean_success_length: (!lengths.is_empty()).then(|| lengths.iter().sum::<f64>() / lengths.len() as f64),
+            ratio_to_centralized: match (arm.mode, centralized) {
+                (Mode::Federated, Some(central)) => Some(ratio(runs, central)),
+                _ => None,
+            },
+        });
+    }
+    let report =
+        Report { name: config.name.clone(), eval_episodes: config.eval_episodes, eval_seed: config.eval_seed, arms };
+    let json = serde_json::to_vec_pretty(&report).expect("the report serializes");
+    crate::run_dir::write_atomic(&dir.join(REPORT_JSON), &json)?;
+    crate::run_dir::write_atomic(&dir.join(REPORT_MD), markdown(&report, config).as_bytes())?;
+    let curves = |pick: fn(&(u64, f64, Option<f64>)) -> Option<f64>| -> Vec<Curve> {
+        config
+            .arms
+            .iter()
+            .filter(|a| !figures[a.name.as_str()].is_empty())
+            .map(|a| {
+                Curve::over_seeds(
+                    &a.name,
+                    figures[a.name.as_str()]
+                        .iter()
+                        .map(|r| r.curve.iter().filter_map(|p| Some((p.0, pick(p)?))).collect()),
+                )
+            })
+            .collect()
+    };
+    plot_curves(
+        &dir.join("heldout_loss.png"),
+        "held-out loss per round (mean, 95% band over seeds)",
+        "held-out loss",
+        &curves(|p| Some(p.1)),
+    )?;
+    plot_curves(
+        &dir.join("success_rate.png"),
+        "sim success per round (mean, 95% band over seeds)",
+        "success rate",
+        &curves(|p| p.2),
+    )?;
+    Ok(report)
+}
+
+/// Rounds until the run's per-round success first reached 90% of its final success.
+fn rounds_to_90pct(run: &RunFigures) -> Option<f64> {
+    if run.success_rate <= 0.0 {
+        return None;
+    }
+    run.curve.iter().find(|(_, _, s)| s.is_some_and(|s| s >= 0.9 * run.success_rate)).map(|(r, _, _)| *r as f64)
+}
+
+fn ratio(runs: &[RunFigures], central: &[RunFigures]) -> Ratio {
+    let mut used = Vec::new();
+    let mut without = Vec::new();
+    let mut ratios = Vec::new();
+    for run in runs {
+        match central.iter().find(|c| c.seed == run.seed) {
+            Some(c) if c.success_rate > 0.0 => {
+                ratios.push(run.success_rate / c.success_rate);
+                used.push(run.seed);
+            }
+            Some(_) => without.push(run.seed),
+            None => {}
+        }
+    }
+    Ratio { ratio: Interval::t(&ratios), seeds_used: used, seeds_without_centralized_success: without }
+}
+
+fn interval(i: &Interval, digits: usize) -> String {
+    format!("{:.d$} [{:.d$}, {:.d$}]", i.mean, i.ci95_low, i.ci95_high, d = digits)
+}
+
+fn markdown(report: &Report, config: &ExperimentConfig) -> String {
+    let mut md = String::new();
+    let _ = writeln!(md, "# Experiment `{}`\n", report.name);
+    let _ = writeln!(
+        md,
+        "Seeds {:?}. Every figure is a mean with its 95% Student-t interval over seeds, but for the pooled success \
+         (Wilson 95% interval over every final episode). Final sim success: {} episodes per run on layouts of seeds \
+         {}.., which no dataset records. Base run configuration: `{}`.\n",
+        config.seeds, report.eval_episodes, report.eval_seed, config.run_config
+    );
+    md.push_str("| arm | held-out loss | action MSE | action L1 | sim success | success, pooled (Wilson) | federated / centralized | rounds to 90% | train time (s) | mean successful length |\n");
+    md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
+    for arm in &report.arms {
+        let f = &arm.final_;
+        let opt = |i: &Option<Interval>, d| i.as_ref().map_or("-".to_owned(), |i| interval(i, d));
+        let ratio = arm.ratio_to_centralized.as_ref().map_or("-".to_owned(), |r| {
+            let mut s = opt(&r.ratio, 2);
+            if !r.seeds_without_centralized_success.is_empty() {
+                let _ = write!(s, " (seeds {:?}: centralized succeeded nowhere)", r.seeds_without_centralized_success);
+            }
+            s
+        });
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {} | {} | {:.2} [{:.2}, {:.2}] ({}/{}) | {} | {} | {} | {} |",
+            arm.name,
+            interval(&f.heldout_loss, 4),
+            opt(&f.action_mse, 2),
+            opt(&f.action_l1, 2),
+            interval(&f.success_rate, 2),
+            arm.success_pooled.mean,
+            arm.success_pooled.ci95_low,
+            arm.success_pooled.ci95_high,
+            arm.successes,
+            arm.episodes,
+            ratio,
+            opt(&arm.rounds_to_90pct, 1),
+            interval(&arm.train_seconds, 0),
+            arm.mean_success_length.map_or("-".to_owned(), |l| format!("{l:.0}")),
+        );
+    }
+    md.push_str("\nPlots: `heldout_loss.png`, `success_rate.png` (per round, the runs' own rollouts).\n");
+    md
+}

@@ -1,0 +1,281 @@
+//! Whole runs in one process, for `fedvla simulate`, `fedvla train` and the experiment runner: a federation (a
+//! server and N native clients over real loopback WebSockets) and its centralized baseline (one trainer on the
+//! union of the clients' training episodes, for as many samples as the federation consumes, evaluated at the same
+//! sample counts). Both write the same `outputs/<run>/` layout, a baseline "round" being the samples of one
+//! federated round, so every reader of a federation's outputs reads a baseline's too.
+
+use std::time::Duration;
+
+use anyhow::Context;
+use fedvla_federation::{
+    ClientEvent, ClientOptions, LocalTrainer, NamedTensors, RoundTask, StrategyParams, run_client,
+};
+use fedvla_learner::trainer::StepProgress;
+use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde_json::json;
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+
+use crate::config::{RunConfig, WorkloadKind};
+use crate::coordinator::RunStatus;
+use crate::linreg::LinRegWorkload;
+use crate::native_client::NativeTransport;
+use crate::run_dir::{ModelExporter, RunDir, TrainableSafetensors};
+use crate::server::{self, ServerParts};
+use crate::smolvla_workload::SmolVlaWorkload;
+use crate::workload::Workload;
+
+/// Where a run shows its progress bars (hidden inside an experiment, which has one bar for its grid).
+#[derive(Clone)]
+pub struct Bars(MultiProgress);
+
+impl Bars {
+    pub fn terminal() -> Self {
+        Self(MultiProgress::new())
+    }
+
+    pub fn hidden() -> Self {
+        Self(MultiProgress::with_draw_target(ProgressDrawTarget::hidden()))
+    }
+
+    fn bar(&self, len: u64, prefix: String) -> anyhow::Result<ProgressBar> {
+        let bar = self.0.add(ProgressBar::new(len));
+        bar.set_style(ProgressStyle::with_template("{prefix:>10} [{bar:30}] {pos}/{len} {msg}")?);
+        bar.set_prefix(prefix);
+        Ok(bar)
+    }
+
+    /// Prints a line above the bars (or nowhere, when hidden).
+    fn println(&self, line: String) {
+        self.0.println(line).ok();
+    }
+}
+
+/// The directory shards are written to inside a run.
+pub const SHARDS_DIR: &str = "shards";
+
+/// A federation of `config.num_clients` native clients, one per shard, until its last round.
+pub fn federated(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::Result<RunStatus> {
+    anyhow::ensure!(
+        config.num_clients >= config.min_clients,
+        "{} clients is below min-clients {}: no round would start",
+        config.num_clients,
+        config.min_clients
+    );
+    match config.workload {
+        WorkloadKind::Linreg => serve_clients(&LinRegWorkload::from_config(&config), config, run_dir, bars),
+        WorkloadKind::Smolvla => {
+            let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
+            serve_clients(&workload, config, run_dir, bars)
+        }
+    }
+}
+
+fn serve_clients<W: Workload>(
+    workload: &W,
+    config: RunConfig,
+    run_dir: RunDir,
+    bars: &Bars,
+) -> anyhow::Result<RunStatus> {
+    let clients = config.num_clients;
+    let trainers = (0..clients).map(|shard| workload.trainer(shard)).collect::<Result<Vec<_>, _>>().map_err(boxed)?;
+    let rounds = config.num_server_rounds;
+    let parts = ServerParts::of(workload, config, run_dir).map_err(boxed)?;
+    runtime()?.block_on(async move {
+        let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
+        let handle = server::start(parts, listener)?;
+        let url = format!("ws://{}", handle.addr());
+        let round_bar = bars.bar(rounds, "server".into())?;
+        let mut status = handle.status();
+        let watcher = tokio::spawn({
+            let round_bar = round_bar.clone();
+            async move {
+                loop {
+                    let s = status.borrow_and_update().clone();
+                    round_bar.set_position(s.completed_rounds);
+                    let refusals = s.rejections.values().sum::<u64>();
+                    round_bar.set_message(format!("rounds, {} connected, {refusals} refusals", s.connected));
+                    if s.finished || status.changed().await.is_err() {
+                        break;
+                    }
+                }
+            }
+        });
+        let tasks: Vec<_> = trainers
+            .into_iter()
+            .enumerate()
+            .map(|(shard, trainer)| {
+                Ok(spawn_client(url.clone(), shard, trainer, bars.bar(rounds, format!("client {shard}"))?))
+            })
+            .collect::<anyhow::Result<_>>()?;
+        // A simulated federation cannot finish without its clients: the first client to fail
+        // stops the run instead of leaving the server waiting for it.
+        let cancel = handle.cancel_token();
+        let clients: Vec<_> = tasks
+            .into_iter()
+            .enumerate()
+            .map(|(shard, done)| {
+                let cancel = cancel.clone();
+                tokio::spawn(async move {
+                    let result = done.await.unwrap_or_else(|_| Err(anyhow::anyhow!("panicked")));
+                    if result.is_err() {
+                        cancel.cancel();
+                    }
+                    result.with_context(|| format!("client {shard}"))
+                })
+            })
+            .collect();
+        let status = handle.finish().await?;
+        watcher.await.ok();
+        round_bar.finish();
+        let mut failures = Vec::new();
+        for client in clients {
+            match tokio::time::timeout(Duration::from_secs(5), client).await {
+                Ok(Ok(Ok(()))) => {}
+                Ok(Ok(Err(e))) => failures.push(format!("{e:#}")),
+                Ok(Err(e)) => failures.push(e.to_string()),
+                Err(_) => failures.push("a client did not finish".into()),
+            }
+        }
+        anyhow::ensure!(failures.is_empty(), "the simulation stopped: {}", failures.join("; "));
+        anyhow::Ok(status)
+    })
+}
+
+/// One client with its own progress bar, on its own thread: trainers' futures need not be `Send` (the
+/// browser's are not), and CPU-bound trainers then train in parallel.
+fn spawn_client<L: LocalTrainer + Send + 'static>(
+    url: String,
+    shard: usize,
+    mut trainer: L,
+    bar: ProgressBar,
+) -> oneshot::Receiver<anyhow::Result<()>> {
+    let (done_tx, done) = oneshot::channel();
+    std::thread::spawn(move || {
+        let client = async move {
+            let mut transport = NativeTransport::connect(&url).await.map_err(boxed)?;
+            let options =
+                ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
+            let summary = run_client(&mut transport, &mut trainer, &options, |event| match event {
+                ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
+                ClientEvent::Task { round, local_steps } => {
+                    bar.set_message(format!("round {round}: training {local_steps} steps"));
+                }
+                ClientEvent::Trained { round, train_loss, .. } => {
+                    bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
+                }
+                ClientEvent::Uploaded { round, bytes, .. } => {
+                    bar.set_message(format!("round {round}: sent {bytes} B"));
+                }
+                ClientEvent::RolledOut { round, episodes, successes } => {
+                    bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
+                }
+                ClientEvent::RoundClosed { round, accepted } => {
+                    if accepted {
+                        bar.set_position(round);
+                    }
+                }
+                ClientEvent::Refused { code, .. } => {
+                    bar.set_message(format!("refused: {}", code.as_str()));
+                }
+            })
+            .await?;
+            bar.finish_with_message(format!(
+                "{} rounds, {} B up, {} B down",
+                summary.rounds_trained, summary.bytes_up, summary.bytes_down
+            ));
+            anyhow::Ok(())
+        };
+        let result = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .context("client runtime")
+            .and_then(|rt| rt.block_on(client));
+        done_tx.send(result).ok();
+    });
+    done
+}
+
+/// The centralized baseline of the federation `config` describes: same model, trainer, learning rate, held-out
+/// sets and sim evaluation, one trainer on every client's training episodes.
+pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::Result<()> {
+    anyhow::ensure!(config.workload == WorkloadKind::Smolvla, "the centralized baseline trains the smolvla workload");
+    let workload = SmolVlaWorkload::prepare_centralized(&config, &run_dir.path().join(SHARDS_DIR))?;
+    let mut trainer = workload.centralized_trainer().map_err(boxed)?;
+    let mut evaluator = workload.evaluator().map_err(boxed)?;
+    let mut exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
+    exporters.extend(workload.exporters());
+
+    let steps_per_round = config.sampled_clients(config.num_clients) as u32 * config.local_steps;
+    let rounds = config.num_server_rounds;
+    let bar = bars.bar(rounds * u64::from(steps_per_round), "central".into())?;
+    // Every round's model is saved, as a federation saves it; evaluated rounds get their figures.
+    let mut persist =
+        |round: u64, global: &NamedTensors, evaluate: bool, mut line: serde_json::Value| -> anyhow::Result<()> {
+            let mut metrics = match evaluate {
+                true => evaluator.evaluate(global).map_err(boxed)?,
+                false => Default::default(),
+            };
+            metrics.extend(run_dir.save_model(round, global, &exporters, &config)?);
+            line["round"] = json!(round);
+            line["model_version"] = json!(round);
+            line["model_crc32"] = json!(global.checksum());
+            line["global"] = if metrics.is_empty() { serde_json::Value::Null } else { json!(metrics) };
+            line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
+            run_dir.append_metrics(&line)?;
+            if evaluate {
+                bars.println(format!(
+                    "round {round}: held-out loss {:.4}, sim success {:?}",
+                    metrics.get("heldout_loss").copied().unwrap_or(f64::NAN),
+                    metrics.get("success_rate")
+                ));
+            }
+            Ok(())
+        };
+    let mut global = workload.initial_model().map_err(boxed)?;
+    persist(0, &global, true, json!({ "clients": [] }))?;
+    trainer.set_global(&global).map_err(boxed)?;
+    let runtime = runtime()?;
+    for round in 1..=rounds {
+        let started = std::time::Instant::now();
+        let task = RoundTask {
+            round,
+            model_version: round - 1,
+            local_steps: steps_per_round,
+            batch_size: config.batch_size,
+            lr: config.lr,
+            seed: config.seed ^ round.wrapping_mul(0x9e37_79b9_7f4a_7c15),
+            strategy: StrategyParams { name: "centralized".into(), proximal_mu: 0.0 },
+            deadline_ms: config.round_deadline_ms,
+            eval_request: false,
+            rollout: None,
+        };
+        // The optimizer's moments carry over from round to round: one continuous run.
+        let before = bar.position();
+        let out = runtime
+            .block_on(trainer.train_with(&task, async |p: StepProgress| {
+                bar.set_position(before + u64::from(p.step));
+                bar.set_message(format!("steps, round {round}, loss {:.4}", p.loss));
+            }))
+            .map_err(boxed)?;
+        global = out.update;
+        let line = json!({
+            "seconds": started.elapsed().as_secs_f64(),
+            "train_loss": out.train_loss,
+            "samples": round * u64::from(steps_per_round) * u64::from(config.batch_size),
+            "clients": [],
+        });
+        persist(round, &global, round.is_multiple_of(config.eval_every) || round == rounds, line)?;
+    }
+    bar.finish();
+    Ok(())
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")
+}
+
+/// Library errors crossing trait objects, into anyhow.
+pub fn boxed(e: fedvla_federation::BoxError) -> anyhow::Error {
+    anyhow::anyhow!(e)
+}

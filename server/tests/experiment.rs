@@ -1,0 +1,85 @@
+//! A tiny experiment end to end (2 arms x 2 seeds, the tiny SmolVLA, a few steps): every run, the final sim
+//! evaluation, report.json's schema with intervals around their means, the plots, resuming a finished grid, and
+//! the same numbers from a second experiment of the same seeds.
+
+use std::path::Path;
+
+use fedvla_server::datagen::{GenDataOptions, generate_dataset};
+use fedvla_server::experiment::report::{REPORT_JSON, Report};
+use fedvla_server::experiment::{self, Arm, ExperimentConfig, Mode};
+
+fn config(out: &Path, dataset: &Path) -> ExperimentConfig {
+    let run_config = format!(
+        "model-size=tiny dataset={} num-clients=2 min-clients=2 min-fit=2 num-server-rounds=2 local-steps=2 \
+         batch-size=2 rollout-episodes=1 client-rollout-episodes=0 rollout-max-frames=30",
+        dataset.display()
+    );
+    ExperimentConfig {
+        name: "tiny".into(),
+        seeds: vec![3, 4],
+        eval_episodes: 2,
+        eval_seed: 10_000,
+        run_config,
+        output_dir: out.display().to_string(),
+        arms: vec![
+            Arm { name: "centralized".into(), mode: Mode::Centralized, run_config: String::new() },
+            Arm { name: "fedavg".into(), mode: Mode::Federated, run_config: String::new() },
+        ],
+    }
+}
+
+/// The report without its wall-clock figures, which no two runs share.
+fn numbers(report: &Report) -> serde_json::Value {
+    let mut json = serde_json::to_value(report).unwrap();
+    for arm in json["arms"].as_array_mut().unwrap() {
+        arm.as_object_mut().unwrap().remove("train_seconds");
+    }
+    json
+}
+
+#[test]
+fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dataset = tmp.path().join("data");
+    generate_dataset(&dataset, &GenDataOptions { episodes: 6, seed: 0, image_size: 32 }, |_| {}).unwrap();
+    let first = config(&tmp.path().join("a"), &dataset);
+    let dir = experiment::run(&first, &|_| Ok(())).unwrap();
+    let report: Report = serde_json::from_slice(&std::fs::read(dir.join(REPORT_JSON)).unwrap()).unwrap();
+    assert_eq!(report.arms.iter().map(|a| a.name.as_str()).collect::<Vec<_>>(), ["centralized", "fedavg"]);
+    for arm in &report.arms {
+        assert_eq!(arm.seeds, [3, 4]);
+        let f = &arm.final_;
+        for i in [Some(f.heldout_loss), f.action_mse, f.action_l1, Some(f.success_rate), Some(arm.success_pooled)] {
+            let i = i.expect("every figure is reported");
+            assert!(i.ci95_low <= i.mean && i.mean <= i.ci95_high, "{}: {i:?}", arm.name);
+        }
+        assert_eq!(arm.episodes, 4, "2 seeds x 2 final episodes");
+    }
+    assert!(report.arms[0].ratio_to_centralized.is_none());
+    assert!(report.arms[1].ratio_to_centralized.is_some());
+    // The schema the issue names, read by key.
+    let raw: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(REPORT_JSON)).unwrap()).unwrap();
+    for key in ["heldout_loss", "action_mse", "action_l1", "success_rate"] {
+        for bound in ["mean", "ci95_low", "ci95_high"] {
+            assert!(raw["arms"][1]["final"][key][bound].is_number(), "final.{key}.{bound}");
+        }
+    }
+    for plot in ["heldout_loss.png", "success_rate.png"] {
+        let png = image::open(dir.join(plot)).unwrap().to_luma8();
+        let mean = png.pixels().map(|p| f64::from(p.0[0])).sum::<f64>() / png.len() as f64;
+        let var = png.pixels().map(|p| (f64::from(p.0[0]) - mean).powi(2)).sum::<f64>() / png.len() as f64;
+        assert!(var > 50.0, "{plot} is not blank");
+    }
+    // Resumed, a finished grid runs nothing again: the runs' final evaluations stay as they were.
+    let final_of = |root: &Path| std::fs::read(root.join("tiny/fedavg/seed_4/final.json")).unwrap();
+    let before = final_of(&tmp.path().join("a"));
+    experiment::run(&first, &|_| panic!("no run should start")).unwrap();
+    assert_eq!(final_of(&tmp.path().join("a")), before);
+
+    let second = config(&tmp.path().join("b"), &dataset);
+    let again: Report = serde_json::from_slice(
+        &std::fs::read(experiment::run(&second, &|_| Ok(())).unwrap().join(REPORT_JSON)).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(numbers(&again), numbers(&report), "same seeds, same numbers");
+}

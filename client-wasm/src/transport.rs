@@ -54,9 +54,7 @@ impl ClientTransport for BrowserTransport {
     }
 
     async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
-        fetch_with_progress(&self.url(&format!("/model/{version}")), |_, _| {})
-            .await
-            .map_err(|e| format!("{e:?}").into())
+        fetch_with_progress(&self.url(&routes::model(version)), |_, _| {}).await.map_err(|e| format!("{e:?}").into())
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {

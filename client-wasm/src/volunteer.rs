@@ -2,19 +2,15 @@
 //! SmolVLA trainer, join over the WebSocket and run the shared round loop until the run finishes or the
 //! connection drops (the page then reconnects).
 
-use std::path::Path;
-
 use burn::tensor::Device;
-use fedvla_data::ShardFileManifest;
-use fedvla_data::shard::verify_shard_bytes;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, LocalTrainer, NamedTensors, PROTOCOL_VERSION,
-    RolloutOutput, RolloutRequest, RoundTask, TrainOutput, VolunteerSetup, run_client,
+    BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, LocalTrainer, NamedTensors, RolloutOutput,
+    RolloutRequest, RoundTask, TrainOutput, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::rollout::Episode;
 use fedvla_learner::trainer::rollout_episode;
-use fedvla_learner::volunteer::{Downloads, policy_config, volunteer_trainer};
+use fedvla_learner::volunteer::{Fetch, fetch_setup, policy_config, smolvla_volunteer};
 use serde_json::json;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
@@ -107,7 +103,8 @@ pub async fn run_volunteer(
     Ok(JsValue::from_str(&summary.to_string()))
 }
 
-/// Downloads the setup, the frozen weights, the shard and the global model, and builds the trainer.
+/// Downloads the setup, the frozen weights, the shard and the global model, and builds the trainer (the shared
+/// start-up, over the page's fetch).
 async fn prepare(
     origin: &str,
     name: &str,
@@ -116,51 +113,18 @@ async fn prepare(
     started: f64,
     status: &StatusSink,
 ) -> Result<BrowserTrainer, BoxError> {
-    let get = |path: &str| format!("{}{path}", origin.trim_end_matches('/'));
+    let fetch = PageFetch { origin, status };
     status.send("stage", json!({ "stage": "setup" }));
     // The name keeps a returning volunteer on its shard (and so on its cached copy of it).
-    let setup_url = get(&format!("/api/volunteer?name={}", js_sys::encode_uri_component(name)));
-    let setup: VolunteerSetup =
-        serde_json::from_slice(&fetch_with_progress(&setup_url, |_, _| {}).await.map_err(boxed)?)?;
-    if setup.protocol_version != PROTOCOL_VERSION {
-        return Err(format!(
-            "the server speaks protocol {}, this page {PROTOCOL_VERSION}: reload the page",
-            setup.protocol_version
-        )
-        .into());
-    }
-    if setup.workload != "smolvla" {
-        return Err(format!("the server runs the {:?} workload; browsers train SmolVLA only", setup.workload).into());
-    }
+    let setup = fetch_setup(&fetch, name, None).await?;
     status.send(
         "setup",
         json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version }),
     );
-    let download = async |what: &str, url: &str, key: &str| -> Result<Vec<u8>, BoxError> {
-        let (bytes, source) = cached(&get(url), key, |received, total| {
-            status.send("download", json!({ "what": what, "received": received, "total": total }));
-        })
-        .await
-        .map_err(boxed)?;
-        status.send("downloaded", json!({ "what": what, "bytes": bytes.len(), "cached": source == Source::Cache }));
-        Ok(bytes)
-    };
-    let frozen_url = setup.frozen_url.clone().ok_or("the server offers no frozen weights")?;
-    let frozen = download("frozen weights", &frozen_url, &frozen_url).await?;
-    let manifest: ShardFileManifest =
-        serde_json::from_slice(&fetch_with_progress(&get(&setup.shard_manifest_url), |_, _| {}).await.map_err(boxed)?)?;
-    let shard = download("shard", &setup.shard_url, &format!("/shard/sha256/{}", manifest.file_sha256)).await?;
-    verify_shard_bytes(Path::new(&manifest.file), &shard, &manifest)?;
-    // Never cached: versions are numbered per run, so a cached version 3 could be another run's.
-    let global =
-        fetch_with_progress(&get(&format!("/model/{}", setup.model_version)), |_, _| {}).await.map_err(boxed)?;
-    status.send("stage", json!({ "stage": "building the model" }));
-    yield_to_page().await;
-    let downloads = Downloads { setup: &setup, frozen: &frozen, global: &global, shard: &shard, manifest: &manifest };
     let largest_tensor = policy_config(&setup)?.param_specs().iter().map(|p| p.numel() * 4).max().unwrap_or(0);
     let (device, backend) = training_device(status, max_buffer_bytes, largest_tensor).await;
     status.send("device", json!({ "backend": backend }));
-    let inner = volunteer_trainer(&downloads, name, &device, &backend)?;
+    let inner = smolvla_volunteer(&fetch, &setup, name, &device, &backend).await?;
     let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;
     Ok(BrowserTrainer {
         inner,
@@ -170,6 +134,29 @@ async fn prepare(
         started,
         first_step_reported: false,
     })
+}
+
+/// Downloads from the page's server with progress on the page, kept in the Cache API under their content key.
+struct PageFetch<'a> {
+    origin: &'a str,
+    status: &'a StatusSink,
+}
+
+impl Fetch for PageFetch<'_> {
+    async fn get(&self, path: &str, what: &str, cache_key: Option<&str>) -> Result<Vec<u8>, BoxError> {
+        let url = format!("{}{path}", self.origin.trim_end_matches('/'));
+        let Some(key) = cache_key else { return fetch_with_progress(&url, |_, _| {}).await.map_err(boxed) };
+        let (bytes, source) = cached(&url, key, |received, total| {
+            self.status.send("download", json!({ "what": what, "received": received, "total": total }));
+        })
+        .await
+        .map_err(boxed)?;
+        self.status
+            .send("downloaded", json!({ "what": what, "bytes": bytes.len(), "cached": source == Source::Cache }));
+        // Building the model takes a moment: let the page show the download first.
+        yield_to_page().await;
+        Ok(bytes)
+    }
 }
 
 /// The shared SmolVLA trainer with the page's progress and an in-page, filmed sim.

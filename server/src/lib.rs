@@ -1,23 +1,8 @@
-//! The federation server (axum), the native client transport and the synthetic workload used until the
-//! SmolVLA trainer lands. The `fedvla` binary (src/main.rs, src/cmd/) is a thin layer over this library.
+//! The `fedvla` binary's library: the native volunteer's I/O ([`native_client`]), whole runs in one process
+//! ([`runs`]: a federation over loopback, its centralized baseline) and experiments over them ([`experiment`]).
+//! The CLI (src/main.rs, src/cmd/) is a thin layer over this, the aggregator (`fedvla-aggregator`), the app
+//! (`fedvla-app`) and the workloads (`fedvla-workloads`).
 
-pub mod app;
-pub mod config;
-pub mod connection;
-pub mod console;
-pub mod coordinator;
-pub mod datagen;
-pub mod error;
 pub mod experiment;
-pub mod http;
-pub mod linreg;
 pub mod native_client;
-pub mod records;
-pub mod run_dir;
 pub mod runs;
-pub mod server;
-pub mod sim_eval;
-pub mod smolvla_workload;
-pub mod static_files;
-pub mod volunteer;
-pub mod workload;

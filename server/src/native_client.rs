@@ -1,13 +1,16 @@
-//! The native client transport: tokio-tungstenite for the WebSocket, a plain HTTP/1.1 GET (hyper) for models.
+//! The native volunteer: its I/O (tokio-tungstenite for the WebSocket, plain HTTP/1.1 requests with hyper for
+//! the shared start-up's downloads ([`Fetch`]) and its uploads) and [`volunteer`], what `fedvla join` and every
+//! client of `fedvla simulate` run: the same downloads and round loop as the browser's.
 
 use std::time::Instant;
 
 use burn::tensor::Device;
-use fedvla_data::ShardFileManifest;
-use fedvla_data::shard::verify_shard_bytes;
-use fedvla_federation::{BoxError, ClientTransport, Video, VolunteerSetup};
-use fedvla_learner::SmolVlaTrainer;
-use fedvla_learner::volunteer::{Downloads, volunteer_trainer};
+use fedvla_aggregator::config::Partitioning;
+use fedvla_federation::{
+    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, Video, WorkloadKind, routes, run_client,
+};
+use fedvla_learner::volunteer::{Fetch, fetch_setup, smolvla_volunteer};
+use fedvla_workloads::linreg::LinRegTrainer;
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
@@ -39,22 +42,6 @@ pub async fn http_request(
     Ok(body.to_vec())
 }
 
-/// A native SmolVLA volunteer: downloads what `setup` points at (frozen weights, global model, shard) and builds
-/// its trainer on the CPU, as the browser does in wasm.
-pub async fn smolvla_volunteer(
-    transport: &NativeTransport,
-    setup: &VolunteerSetup,
-    name: &str,
-) -> Result<SmolVlaTrainer, BoxError> {
-    let frozen_url = setup.frozen_url.as_deref().ok_or("the server offers no frozen weights")?;
-    let frozen = transport.get(frozen_url).await?;
-    let global = transport.get(&format!("/model/{}", setup.model_version)).await?;
-    let (manifest, shard) = transport.fetch_shard(setup.shard_index as usize).await?;
-    tracing::info!(frozen_bytes = frozen.len(), shard_bytes = shard.len(), "downloaded");
-    let downloads = Downloads { setup, frozen: &frozen, global: &global, shard: &shard, manifest: &manifest };
-    volunteer_trainer(&downloads, name, &Device::flex().autodiff(), "cpu-flex")
-}
-
 pub struct NativeTransport {
     ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
     authority: String,
@@ -64,25 +51,7 @@ pub struct NativeTransport {
 impl NativeTransport {
     /// `GET path` on the server.
     pub async fn get(&self, path: &str) -> Result<Vec<u8>, BoxError> {
-        http_request(&self.authority, hyper::Request::get(path), Bytes::new()).await
-    }
-
-    /// What the server offers volunteer `name` (`GET /api/volunteer?name=`): a new name gets the next shard
-    /// round-robin, a returning one its shard again; `shard` asks for that one (it becomes the name's).
-    pub async fn fetch_setup(&self, name: &str, shard: Option<u32>) -> Result<VolunteerSetup, BoxError> {
-        let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
-        let shard = shard.map(|s| format!("&shard={s}")).unwrap_or_default();
-        let bytes = self.get(&format!("/api/volunteer?name={name}{shard}")).await?;
-        serde_json::from_slice(&bytes).map_err(|e| format!("GET /api/volunteer: {e}").into())
-    }
-
-    /// Downloads shard `index` and checks it against its manifest (size and SHA-256) before use.
-    pub async fn fetch_shard(&self, index: usize) -> Result<(ShardFileManifest, Vec<u8>), BoxError> {
-        let manifest: ShardFileManifest =
-            serde_json::from_slice(&self.get(&format!("/shard/{index}/manifest")).await?)?;
-        let bytes = self.get(&format!("/shard/{index}")).await?;
-        verify_shard_bytes(std::path::Path::new(&manifest.file), &bytes, &manifest)?;
-        Ok((manifest, bytes))
+        Fetch::get(self, path, path, None).await
     }
 
     /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored).
@@ -95,8 +64,17 @@ impl NativeTransport {
         }
         let authority = uri.authority().ok_or_else(|| format!("no host in `{server}`"))?.to_string();
         // Nagle off: an update is a small header message followed at once by frames.
-        let (ws, _) = tokio_tungstenite::connect_async_with_config(format!("ws://{authority}/ws"), None, true).await?;
+        let (ws, _) =
+            tokio_tungstenite::connect_async_with_config(format!("ws://{authority}{}", routes::WS), None, true).await?;
         Ok(Self { ws, authority, started: Instant::now() })
+    }
+}
+
+impl Fetch for NativeTransport {
+    async fn get(&self, path: &str, what: &str, _cache_key: Option<&str>) -> Result<Vec<u8>, BoxError> {
+        let bytes = http_request(&self.authority, hyper::Request::get(path), Bytes::new()).await?;
+        tracing::debug!(what, bytes = bytes.len(), "downloaded");
+        Ok(bytes)
     }
 }
 
@@ -124,11 +102,11 @@ impl ClientTransport for NativeTransport {
     }
 
     async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
-        self.get(&format!("/model/{version}")).await
+        self.get(&routes::model(version)).await
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
-        let request = hyper::Request::post(format!("/rollout/{round}/{}", video.file_name))
+        let request = hyper::Request::post(routes::rollout_video(round, &video.file_name))
             .header(hyper::header::AUTHORIZATION, format!("Bearer {session}"))
             .header(hyper::header::CONTENT_TYPE, video.mime);
         http_request(&self.authority, request, Bytes::from(video.bytes)).await.map(drop)
@@ -136,5 +114,35 @@ impl ClientTransport for NativeTransport {
 
     fn now_seconds(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
+    }
+}
+
+/// Volunteer `name` of the server at `server` (`ws://`, `http://` or `host:port`) until the run finishes: fetches
+/// its setup (on `shard` when given), builds the trainer the server's workload needs from what it downloads, and
+/// runs the shared round loop, reporting to `on_event`.
+pub async fn volunteer(
+    server: &str,
+    name: &str,
+    shard: Option<u32>,
+    auth_token: Option<String>,
+    on_event: impl FnMut(ClientEvent),
+) -> Result<ClientSummary, BoxError> {
+    let mut transport = NativeTransport::connect(server).await?;
+    let setup = fetch_setup(&transport, name, shard).await?;
+    tracing::info!(workload = ?setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
+    let options = ClientOptions { name: name.to_owned(), auth_token, shard: Some(setup.shard_index) };
+    match setup.workload {
+        WorkloadKind::Linreg => {
+            // The linreg shard is generated from its index; the setup says how the data is split.
+            let partitioning: Partitioning = serde_json::from_value(setup.policy["partitioning"].clone())
+                .map_err(|e| format!("the linreg setup's partitioning: {e}"))?;
+            let mut trainer = LinRegTrainer::new(setup.shard_index as usize, partitioning);
+            Ok(run_client(&mut transport, &mut trainer, &options, on_event).await?)
+        }
+        WorkloadKind::Smolvla => {
+            let device = Device::flex().autodiff();
+            let mut trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
+            Ok(run_client(&mut transport, &mut trainer, &options, on_event).await?)
+        }
     }
 }

@@ -1,5 +1,6 @@
 //! Whole runs in one process, for `fedvla simulate`, `fedvla train` and the experiment runner: a federation (a
-//! server and N native clients over real loopback WebSockets) and its centralized baseline (one trainer on the
+//! server and N native volunteers over real loopback WebSockets, each downloading its setup, shard and weights
+//! over HTTP as `fedvla join` does) and its centralized baseline (one trainer on the
 //! union of the clients' training episodes, for as many samples as the federation consumes, evaluated at the same
 //! sample counts). Both write the same `outputs/<run>/` layout, a baseline "round" being the samples of one
 //! federated round, so every reader of a federation's outputs reads a baseline's too.
@@ -7,23 +8,21 @@
 use std::time::Duration;
 
 use anyhow::Context;
-use fedvla_federation::{
-    ClientEvent, ClientOptions, LocalTrainer, NamedTensors, RoundTask, StrategyParams, run_client,
-};
+use fedvla_aggregator::config::{RunConfig, WorkloadKind};
+use fedvla_aggregator::coordinator::RunStatus;
+use fedvla_aggregator::records::{GlobalMetrics, MetricsLine, timestamp};
+use fedvla_aggregator::run_dir::{ModelExporter, RunDir, TrainableSafetensors};
+use fedvla_app::server;
+use fedvla_federation::{ClientEvent, LocalTrainer, NamedTensors, RoundTask, StrategyParams};
 use fedvla_learner::trainer::StepProgress;
+use fedvla_workloads::linreg::LinRegWorkload;
+use fedvla_workloads::smolvla::SmolVlaWorkload;
+use fedvla_workloads::workload::{Workload, server_parts};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use serde_json::json;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
-use crate::config::{RunConfig, WorkloadKind};
-use crate::coordinator::RunStatus;
-use crate::linreg::LinRegWorkload;
-use crate::native_client::NativeTransport;
-use crate::run_dir::{ModelExporter, RunDir, TrainableSafetensors};
-use crate::server::{self, ServerParts};
-use crate::smolvla_workload::SmolVlaWorkload;
-use crate::workload::Workload;
+use crate::native_client;
 
 /// Where a run shows its progress bars (hidden inside an experiment, which has one bar for its grid).
 #[derive(Clone)]
@@ -71,16 +70,15 @@ pub fn federated(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::Res
     }
 }
 
-fn serve_clients<W: Workload>(
-    workload: &W,
+fn serve_clients(
+    workload: &impl Workload,
     config: RunConfig,
     run_dir: RunDir,
     bars: &Bars,
 ) -> anyhow::Result<RunStatus> {
     let clients = config.num_clients;
-    let trainers = (0..clients).map(|shard| workload.trainer(shard)).collect::<Result<Vec<_>, _>>().map_err(boxed)?;
     let rounds = config.num_server_rounds;
-    let parts = ServerParts::of(workload, config, run_dir).map_err(boxed)?;
+    let parts = server_parts(workload, config, run_dir).map_err(boxed)?;
     runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
         let handle = server::start(parts, listener)?;
@@ -101,12 +99,8 @@ fn serve_clients<W: Workload>(
                 }
             }
         });
-        let tasks: Vec<_> = trainers
-            .into_iter()
-            .enumerate()
-            .map(|(shard, trainer)| {
-                Ok(spawn_client(url.clone(), shard, trainer, bars.bar(rounds, format!("client {shard}"))?))
-            })
+        let tasks: Vec<_> = (0..clients)
+            .map(|shard| Ok(spawn_client(url.clone(), shard, bars.bar(rounds, format!("client {shard}"))?)))
             .collect::<anyhow::Result<_>>()?;
         // A simulated federation cannot finish without its clients: the first client to fail
         // stops the run instead of leaving the server waiting for it.
@@ -142,21 +136,14 @@ fn serve_clients<W: Workload>(
     })
 }
 
-/// One client with its own progress bar, on its own thread: trainers' futures need not be `Send` (the
-/// browser's are not), and CPU-bound trainers then train in parallel.
-fn spawn_client<L: LocalTrainer + Send + 'static>(
-    url: String,
-    shard: usize,
-    mut trainer: L,
-    bar: ProgressBar,
-) -> oneshot::Receiver<anyhow::Result<()>> {
+/// Volunteer `client-<shard>` on shard `shard` with its own progress bar, on its own thread: trainers' futures
+/// need not be `Send` (the browser's are not), and CPU-bound trainers then train in parallel.
+fn spawn_client(url: String, shard: usize, bar: ProgressBar) -> oneshot::Receiver<anyhow::Result<()>> {
     let (done_tx, done) = oneshot::channel();
     std::thread::spawn(move || {
         let client = async move {
-            let mut transport = NativeTransport::connect(&url).await.map_err(boxed)?;
-            let options =
-                ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
-            let summary = run_client(&mut transport, &mut trainer, &options, |event| match event {
+            let name = format!("client-{shard}");
+            let summary = native_client::volunteer(&url, &name, Some(shard as u32), None, |event| match event {
                 ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
                 ClientEvent::Task { round, local_steps } => {
                     bar.set_message(format!("round {round}: training {local_steps} steps"));
@@ -179,7 +166,8 @@ fn spawn_client<L: LocalTrainer + Send + 'static>(
                     bar.set_message(format!("refused: {}", code.as_str()));
                 }
             })
-            .await?;
+            .await
+            .map_err(boxed)?;
             bar.finish_with_message(format!(
                 "{} rounds, {} B up, {} B down",
                 summary.rounds_trained, summary.bytes_up, summary.bytes_down
@@ -210,30 +198,25 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
     let rounds = config.num_server_rounds;
     let bar = bars.bar(rounds * u64::from(steps_per_round), "central".into())?;
     // Every round's model is saved, as a federation saves it; evaluated rounds get their figures.
-    let mut persist =
-        |round: u64, global: &NamedTensors, evaluate: bool, mut line: serde_json::Value| -> anyhow::Result<()> {
-            let mut metrics = match evaluate {
-                true => evaluator.evaluate(global).map_err(boxed)?,
-                false => Default::default(),
-            };
-            metrics.extend(run_dir.save_model(round, global, &exporters, &config)?);
-            line["round"] = json!(round);
-            line["model_version"] = json!(round);
-            line["model_crc32"] = json!(global.checksum());
-            line["global"] = if metrics.is_empty() { serde_json::Value::Null } else { json!(metrics) };
-            line["timestamp"] = json!(chrono::Local::now().to_rfc3339());
-            run_dir.append_metrics(&line)?;
-            if evaluate {
-                bars.println(format!(
-                    "round {round}: held-out loss {:.4}, sim success {:?}",
-                    metrics.get("heldout_loss").copied().unwrap_or(f64::NAN),
-                    metrics.get("success_rate")
-                ));
-            }
-            Ok(())
-        };
+    let mut persist = |global: &NamedTensors, evaluate: bool, mut line: MetricsLine| -> anyhow::Result<()> {
+        let eval = if evaluate { Some(evaluator.evaluate(global).map_err(boxed)?) } else { None };
+        let sim = run_dir.save_model(line.round, global, &NamedTensors::new(), &exporters, &config)?;
+        line.model_version = line.round;
+        line.model_crc32 = global.checksum();
+        line.global = (eval.is_some() || sim.is_some()).then_some(GlobalMetrics { eval, sim });
+        line.timestamp = timestamp();
+        run_dir.append_metrics(&line)?;
+        if let Some(eval) = eval {
+            let success = sim.map(|s| s.success_rate);
+            bars.println(format!(
+                "round {}: held-out loss {:.4}, sim success {success:?}",
+                line.round, eval.heldout_loss
+            ));
+        }
+        Ok(())
+    };
     let mut global = workload.initial_model().map_err(boxed)?;
-    persist(0, &global, true, json!({ "clients": [] }))?;
+    persist(&global, true, MetricsLine::default())?;
     trainer.set_global(&global).map_err(boxed)?;
     let runtime = runtime()?;
     for round in 1..=rounds {
@@ -259,13 +242,14 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             }))
             .map_err(boxed)?;
         global = out.update;
-        let line = json!({
-            "seconds": started.elapsed().as_secs_f64(),
-            "train_loss": out.train_loss,
-            "samples": round * u64::from(steps_per_round) * u64::from(config.batch_size),
-            "clients": [],
-        });
-        persist(round, &global, round.is_multiple_of(config.eval_every) || round == rounds, line)?;
+        let line = MetricsLine {
+            round,
+            seconds: Some(started.elapsed().as_secs_f64()),
+            train_loss: Some(out.train_loss),
+            samples: Some(round * u64::from(steps_per_round) * u64::from(config.batch_size)),
+            ..MetricsLine::default()
+        };
+        persist(&global, round.is_multiple_of(config.eval_every) || round == rounds, line)?;
     }
     bar.finish();
     Ok(())

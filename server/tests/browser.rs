@@ -10,13 +10,16 @@ mod webdriver;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use burn::tensor::Device;
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
+use fedvla_app::server::{self, ServerHandle};
 use fedvla_federation::{ClientOptions, run_client};
-use fedvla_server::config::RunConfig;
-use fedvla_server::datagen::{GenDataOptions, generate_dataset};
-use fedvla_server::native_client::{NativeTransport, smolvla_volunteer};
-use fedvla_server::run_dir::{METRICS_FILE, RunDir};
-use fedvla_server::server::{self, ServerHandle, ServerParts};
-use fedvla_server::smolvla_workload::SmolVlaWorkload;
+use fedvla_learner::volunteer::{fetch_setup, smolvla_volunteer};
+use fedvla_server::native_client::NativeTransport;
+use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
+use fedvla_workloads::smolvla::SmolVlaWorkload;
+use fedvla_workloads::workload::server_parts;
 use serde_json::Value;
 use webdriver::{Browser, missing_prerequisite, www_dir};
 
@@ -42,7 +45,7 @@ async fn start_server(tmp: &Path, overrides: &str) -> (ServerHandle, RunDir) {
         .unwrap();
     let run_dir = RunDir::create(&tmp.join("out"), &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
-    let parts = ServerParts::of(&workload, cfg, run_dir.clone()).unwrap();
+    let parts = server_parts(&workload, cfg, run_dir.clone()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     (server::start(parts, listener).unwrap(), run_dir)
 }
@@ -52,8 +55,10 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
     std::thread::spawn(move || {
         tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
             let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
-            let setup = transport.fetch_setup("native-0", None).await.unwrap();
-            let mut trainer = smolvla_volunteer(&transport, &setup, "native-0").await.unwrap();
+            let setup = fetch_setup(&transport, "native-0", None).await.unwrap();
+            let mut trainer = smolvla_volunteer(&transport, &setup, "native-0", &Device::flex().autodiff(), "cpu-flex")
+                .await
+                .unwrap();
             let options = ClientOptions { name: "native-0".into(), auth_token: None, shard: Some(setup.shard_index) };
             run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap();
         })

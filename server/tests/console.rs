@@ -7,8 +7,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use common::*;
-use fedvla_server::run_dir::RunDir;
-use fedvla_server::server::ServerHandle;
+use fedvla_aggregator::run_dir::RunDir;
+use fedvla_app::server::ServerHandle;
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
 use hyper::{HeaderMap, StatusCode};
@@ -144,7 +144,7 @@ async fn control(handle: &ServerHandle, action: &str) -> Value {
     reply.json()["state"].clone()
 }
 
-fn console_config(overrides: &str) -> fedvla_server::config::RunConfig {
+fn console_config(overrides: &str) -> fedvla_aggregator::config::RunConfig {
     config(&format!("operator-token={TOKEN} {overrides}"))
 }
 

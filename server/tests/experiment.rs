@@ -4,9 +4,9 @@
 
 use std::path::Path;
 
-use fedvla_server::datagen::{GenDataOptions, generate_dataset};
 use fedvla_server::experiment::report::{REPORT_JSON, Report};
 use fedvla_server::experiment::{self, Arm, ExperimentConfig, Mode};
+use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
 
 fn config(out: &Path, dataset: &Path) -> ExperimentConfig {
     let run_config = format!(

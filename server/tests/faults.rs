@@ -5,12 +5,12 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::*;
+use fedvla_aggregator::run_dir::RunDir;
 use fedvla_federation::codec::{encode_payload, encode_update};
 use fedvla_federation::{
     ClientMessage, ErrorCode, NamedTensors, PROTOCOL_VERSION, RoundMetrics, ServerMessage, TrainOutput,
 };
-use fedvla_server::linreg::{self, BIAS, FEATURES, WEIGHT};
-use fedvla_server::run_dir::RunDir;
+use fedvla_workloads::linreg::{self, BIAS, FEATURES, WEIGHT};
 
 #[tokio::test]
 async fn straggler_and_dropped_clients_do_not_stall_the_round() {

@@ -3,10 +3,10 @@
 mod common;
 
 use common::*;
+use fedvla_aggregator::run_dir::{RunDir, TRAINABLE_FILE};
 use fedvla_federation::TrainOutput;
 use fedvla_federation::codec::HEADER_LEN;
-use fedvla_server::linreg;
-use fedvla_server::run_dir::{RunDir, TRAINABLE_FILE};
+use fedvla_workloads::linreg;
 
 #[tokio::test]
 async fn three_clients_two_rounds() {

@@ -5,8 +5,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use fedvla_data::{FeatureStats, LeRobotDataset, RgbImage};
-use fedvla_server::datagen::{GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, generate_dataset};
 use fedvla_sim::{Camera, FPS, JOINT_COUNT, Scene, TASK, render, run_expert_episode};
+use fedvla_workloads::datagen::{GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, generate_dataset};
 
 const SIZE: u32 = 64;
 

@@ -3,8 +3,8 @@
 mod common;
 
 use common::*;
+use fedvla_aggregator::run_dir::{RunDir, TRAINABLE_FILE};
 use fedvla_federation::TrainOutput;
-use fedvla_server::run_dir::{RunDir, TRAINABLE_FILE};
 
 #[tokio::test]
 async fn killed_after_round_one_then_resumed() {

@@ -5,21 +5,23 @@
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
+use burn::tensor::Device;
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir, TRAINABLE_FILE};
+use fedvla_app::server;
 use fedvla_data::LeRobotDataset;
 use fedvla_federation::codec::HEADER_LEN;
 use fedvla_federation::{
     BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask,
-    TrainOutput, run_client,
+    TrainOutput, routes, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
+use fedvla_learner::volunteer::{fetch_setup, fetch_shard, smolvla_volunteer};
 use fedvla_policy::PolicyDir;
-use fedvla_server::config::RunConfig;
-use fedvla_server::datagen::{GenDataOptions, generate_dataset};
 use fedvla_server::native_client::NativeTransport;
-use fedvla_server::run_dir::{METRICS_FILE, RunDir, TRAINABLE_FILE};
-use fedvla_server::server::{self, ServerParts};
-use fedvla_server::smolvla_workload::SmolVlaWorkload;
-use fedvla_server::workload::Workload;
+use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
+use fedvla_workloads::smolvla::SmolVlaWorkload;
+use fedvla_workloads::workload::{Workload, server_parts};
 
 /// Records every update it sends; hangs from round `hang_from_round` on (a client stuck mid-round).
 struct Recording {
@@ -77,10 +79,10 @@ async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
     let run_dir = RunDir::create(out, &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
     let initial = workload.initial_model().unwrap();
-    let parts = ServerParts::of(&workload, cfg.clone(), run_dir.clone()).unwrap();
+    let parts = server_parts(&workload, cfg.clone(), run_dir.clone()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
-    let clients = spawn_clients(&workload, handle.addr(), None);
+    let clients = spawn_clients(handle.addr(), None);
     let status = handle.finish().await.unwrap();
     assert_eq!(status.completed_rounds, 2);
     assert!(status.rejections.is_empty(), "{:?}", status.rejections);
@@ -96,23 +98,25 @@ async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
 
 type Updates = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
 
-/// Three native clients of `workload` on their own threads (trainer futures are not Send, the browser's are not
-/// either), recording their updates.
+/// Three native volunteers on their own threads (trainer futures are not Send, the browser's are not either),
+/// each downloading its setup, shard and weights over HTTP as `fedvla join` does, recording their updates.
 fn spawn_clients(
-    workload: &SmolVlaWorkload,
     addr: std::net::SocketAddr,
     hang_from_round: Option<u64>,
 ) -> Vec<(std::thread::JoinHandle<ClientSummary>, Updates)> {
-    (0..3)
+    (0..3u32)
         .map(|shard| {
             let updates = Updates::default();
-            let mut trainer =
-                Recording { inner: workload.trainer(shard).unwrap(), updates: updates.clone(), hang_from_round };
+            let recorded = updates.clone();
             let thread = std::thread::spawn(move || {
                 tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
                     let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
-                    let options =
-                        ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
+                    let name = format!("client-{shard}");
+                    let setup = fetch_setup(&transport, &name, Some(shard)).await.unwrap();
+                    let device = Device::flex().autodiff();
+                    let inner = smolvla_volunteer(&transport, &setup, &name, &device, "cpu-flex").await.unwrap();
+                    let mut trainer = Recording { inner, updates: recorded, hang_from_round };
+                    let options = ClientOptions { name, auth_token: None, shard: Some(shard) };
                     run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
                 })
             });
@@ -202,12 +206,13 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     let cfg = config(&data, &tmp.path().join("out"), 0);
     let run_dir = RunDir::create(&tmp.path().join("out"), &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
-    let parts = ServerParts::of(&workload, cfg, run_dir).unwrap();
+    let parts = server_parts(&workload, cfg, run_dir).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
     let transport = NativeTransport::connect(&format!("ws://{}", handle.addr())).await.unwrap();
     for index in 0..3 {
-        let (manifest, bytes) = transport.fetch_shard(index).await.unwrap();
+        let (manifest, bytes) =
+            fetch_shard(&transport, &routes::shard(index as u32), &routes::shard_manifest(index as u32)).await.unwrap();
         assert_eq!(bytes.len() as u64, manifest.file_bytes);
         assert_eq!(
             bytes,
@@ -219,10 +224,10 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     // Shards are assigned round-robin by volunteer name, and a returning name keeps its shard.
     let mut assigned = Vec::new();
     for name in ["ann", "bob", "cy", "dee", "bob", "ann"] {
-        assigned.push(transport.fetch_setup(name, None).await.unwrap().shard_index);
+        assigned.push(fetch_setup(&transport, name, None).await.unwrap().shard_index);
     }
     assert_eq!(assigned, [0, 1, 2, 0, 1, 0]);
-    let missing = transport.fetch_shard(3).await.unwrap_err().to_string();
+    let missing = fetch_shard(&transport, &routes::shard(3), &routes::shard_manifest(3)).await.unwrap_err().to_string();
     assert!(missing.contains("404") && missing.contains("no shard 3"), "{missing}");
     handle.kill();
 }
@@ -237,16 +242,16 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
     let dir = run_dir.path().to_owned();
     let start = |cfg: RunConfig, run_dir: RunDir| async move {
         let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
-        let parts = ServerParts::of(&workload, cfg, run_dir).unwrap();
+        let parts = server_parts(&workload, cfg, run_dir).unwrap();
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        (server::start(parts, listener).unwrap(), workload)
+        server::start(parts, listener).unwrap()
     };
     let rounds = || metrics(&dir).iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>();
 
     // First life: the clients hang in round 2, so the kill lands while round 2 is in flight. Their threads stay
     // parked on the hang; the test does not wait for them.
-    let (handle, workload) = start(cfg, run_dir).await;
-    let _stuck = spawn_clients(&workload, handle.addr(), Some(2));
+    let handle = start(cfg, run_dir).await;
+    let _stuck = spawn_clients(handle.addr(), Some(2));
     let mut status = handle.status();
     status.wait_for(|s| s.completed_rounds == 1).await.unwrap();
     handle.kill();
@@ -255,9 +260,9 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
 
     // Second life, as `fedvla serve --resume` does it: the run directory's config and models.
     let (run_dir, cfg) = RunDir::open(&dir).unwrap();
-    let (handle, workload) = start(cfg, run_dir.clone()).await;
+    let handle = start(cfg, run_dir.clone()).await;
     assert_eq!(handle.status().borrow().completed_rounds, 1);
-    let clients = spawn_clients(&workload, handle.addr(), None);
+    let clients = spawn_clients(handle.addr(), None);
     assert_eq!(handle.finish().await.unwrap().completed_rounds, 2);
     let mut updates = Vec::new();
     for (thread, recorded) in clients {

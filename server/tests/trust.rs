@@ -7,10 +7,11 @@ mod common;
 use std::time::Duration;
 
 use common::*;
-use fedvla_federation::{ErrorCode, Evaluator, FedAvg, ServerMessage, Strategy, TrainOutput};
-use fedvla_server::linreg::{self, LinRegEvaluator};
-use fedvla_server::run_dir::{RunDir, VOLUNTEERS_FILE};
-use fedvla_server::volunteer::Registry;
+use fedvla_aggregator::registry::Registry;
+use fedvla_aggregator::registry::VOLUNTEERS_FILE;
+use fedvla_aggregator::run_dir::RunDir;
+use fedvla_federation::{ErrorCode, Evaluator, FedAvg, ServerMessage, TrainOutput, aggregate};
+use fedvla_workloads::linreg::{self, LinRegEvaluator};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -97,8 +98,8 @@ async fn an_update_that_breaks_the_evaluation_is_dropped_and_the_rest_aggregated
     // The premise: with the attacker in, the held-out loss of the aggregate is not finite.
     let mut with_attacker: Vec<_> = updates.iter().map(|u| (u.update.clone(), u.examples)).collect();
     with_attacker.push((overflowing_update(), weight(2)));
-    let broken = FedAvg.aggregate(&linreg::initial_model(0), &with_attacker).unwrap();
-    assert!(!LinRegEvaluator::default().evaluate(&broken).unwrap()["heldout_loss"].is_finite());
+    let broken = aggregate(&FedAvg, &linreg::initial_model(0), with_attacker.iter().map(|(t, n)| (t, *n))).unwrap();
+    assert!(!LinRegEvaluator::default().evaluate(&broken.global).unwrap().heldout_loss.is_finite());
 
     assert_close(&run_dir.load_model(1).unwrap(), &weighted_mean(&updates), 1e-6);
     let line = &metrics(run_dir.path())[1];
@@ -249,7 +250,7 @@ async fn shards_and_client_ids_survive_a_restart() {
     let base = tempfile::tempdir().unwrap();
     let cfg = config("");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
-    let shard_of = async |handle: &fedvla_server::server::ServerHandle, name: &str| -> u32 {
+    let shard_of = async |handle: &fedvla_app::server::ServerHandle, name: &str| -> u32 {
         let (status, body) = http(handle, "GET", &format!("/api/volunteer?name={name}"), &[], Vec::new()).await;
         assert_eq!(status, 200, "{body}");
         serde_json::from_str::<fedvla_federation::VolunteerSetup>(&body).unwrap().shard_index

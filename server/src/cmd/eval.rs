@@ -1,5 +1,5 @@
 //! `fedvla eval`: a policy (or the scripted expert) in the SO-100 sim over a range of seeds, with a
-//! video per episode and results.json (see `fedvla_server::sim_eval`).
+//! video per episode and results.json (see `fedvla_workloads::sim_eval`).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -8,7 +8,7 @@ use anyhow::Context;
 use burn::tensor::Device;
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_policy::PolicyDir;
-use fedvla_server::sim_eval::{
+use fedvla_workloads::sim_eval::{
     Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, DEFAULT_VIDEO_SIZE, RESULTS_FILE, SimEvalOptions, evaluate_in_sim,
 };
 use indicatif::{ProgressBar, ProgressStyle};
@@ -66,14 +66,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let elapsed = started.elapsed();
 
-    let frames: usize = summary.episodes.iter().map(|e| e.length).sum();
+    let frames: u64 = summary.episodes.iter().map(|e| u64::from(e.length)).sum();
     println!(
         "{}: {}/{} episodes succeeded ({:.1}%), mean length {:.1} frames",
         summary.policy,
         summary.episodes.iter().filter(|e| e.success).count(),
         summary.episodes.len(),
-        summary.success_rate * 100.0,
-        summary.mean_length,
+        summary.success_rate.unwrap_or(0.0) * 100.0,
+        summary.mean_length.unwrap_or(0.0),
     );
     println!(
         "{frames} frames in {:.1} s ({:.1} ms per frame, acting, simulating and filming)",

@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
+use fedvla_aggregator::run_dir::RunDir;
 use fedvla_server::experiment::{self, ExperimentConfig};
-use fedvla_server::run_dir::RunDir;
 use tracing_subscriber::filter::LevelFilter;
 
 #[derive(clap::Args)]

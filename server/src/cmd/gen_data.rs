@@ -1,9 +1,9 @@
 //! `fedvla gen-data`: scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset (see
-//! `fedvla_server::datagen`).
+//! `fedvla_workloads::datagen`).
 
 use std::path::PathBuf;
 
-use fedvla_server::datagen::{GenDataOptions, GenProgress, generate_dataset};
+use fedvla_workloads::datagen::{GenDataOptions, GenProgress, generate_dataset};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(clap::Args)]

@@ -1,10 +1,9 @@
 //! `fedvla join URL`: a native volunteer. It downloads what the server offers (`GET /api/volunteer`: its shard,
-//! the policy configuration and the frozen weights), then runs the shared round loop.
+//! the policy configuration and the frozen weights), then runs the shared round loop
+//! (`fedvla_server::native_client::volunteer`).
 
-use fedvla_federation::{ClientError, ClientEvent, ClientOptions, ErrorCode, LocalTrainer, run_client};
-use fedvla_server::config::Partitioning;
-use fedvla_server::linreg::LinRegTrainer;
-use fedvla_server::native_client::{NativeTransport, smolvla_volunteer};
+use fedvla_federation::{ClientError, ClientEvent, ErrorCode};
+use fedvla_server::native_client;
 use tracing_subscriber::filter::LevelFilter;
 
 #[derive(clap::Args)]
@@ -25,48 +24,25 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     super::init_tracing(None, LevelFilter::INFO);
-    super::runtime()?.block_on(async move {
-        let mut transport = NativeTransport::connect(&args.url).await.map_err(super::boxed)?;
-        let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_server::console::random_token()[..6]));
-        let setup = transport.fetch_setup(&name, args.shard).await.map_err(super::boxed)?;
-        let options = ClientOptions { name, auth_token: args.auth_token, shard: Some(setup.shard_index) };
-        tracing::info!(workload = %setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
-        match setup.workload.as_str() {
-            // The linreg shard is generated from its index (the partitioning only changes the data skew).
-            "linreg" => {
-                let mut trainer = LinRegTrainer::new(setup.shard_index as usize, Partitioning::ByEpisode);
-                train(&mut transport, &mut trainer, &options).await
+    let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_aggregator::sessions::random_token()[..6]));
+    let result =
+        super::runtime()?.block_on(native_client::volunteer(&args.url, &name, args.shard, args.auth_token, |event| {
+            match event {
+                ClientEvent::Trained { round, examples, train_loss } => {
+                    tracing::info!(round, examples, train_loss, "trained");
+                }
+                ClientEvent::Refused { code, message } => {
+                    tracing::warn!(code = code.as_str(), %message, "refused");
+                }
+                other => tracing::info!(?other),
             }
-            "smolvla" => {
-                let mut trainer = smolvla_volunteer(&transport, &setup, &options.name).await.map_err(super::boxed)?;
-                train(&mut transport, &mut trainer, &options).await
-            }
-            other => anyhow::bail!("the server runs workload {other:?}, which this client does not know"),
-        }
-    })
-}
-
-async fn train<L: LocalTrainer>(
-    transport: &mut NativeTransport,
-    trainer: &mut L,
-    options: &ClientOptions,
-) -> anyhow::Result<()> {
-    let result = run_client(transport, trainer, options, |event| match event {
-        ClientEvent::Trained { round, examples, train_loss } => {
-            tracing::info!(round, examples, train_loss, "trained");
-        }
-        ClientEvent::Refused { code, message } => {
-            tracing::warn!(code = code.as_str(), %message, "refused");
-        }
-        other => tracing::info!(?other),
-    })
-    .await;
+        }));
     let summary = match result {
-        Err(ClientError::Refused { code: ErrorCode::ShuttingDown, .. }) => {
+        Err(e) if matches!(e.downcast_ref(), Some(ClientError::Refused { code: ErrorCode::ShuttingDown, .. })) => {
             tracing::info!("the server shut down before the run finished");
             return Ok(());
         }
-        other => other?,
+        other => other.map_err(super::boxed)?,
     };
     tracing::info!(
         rounds = summary.rounds_trained,

@@ -16,12 +16,13 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
 use clap::Subcommand;
-use fedvla_server::config::{RunConfig, WorkloadKind};
-use fedvla_server::linreg::LinRegWorkload;
-use fedvla_server::run_dir::RunDir;
+use fedvla_aggregator::config::{RunConfig, WorkloadKind};
+use fedvla_aggregator::parts::ServerParts;
+use fedvla_aggregator::run_dir::RunDir;
 use fedvla_server::runs::{SHARDS_DIR, boxed};
-use fedvla_server::server::ServerParts;
-use fedvla_server::smolvla_workload::SmolVlaWorkload;
+use fedvla_workloads::linreg::LinRegWorkload;
+use fedvla_workloads::smolvla::SmolVlaWorkload;
+use fedvla_workloads::workload::server_parts;
 use tracing_subscriber::filter::{EnvFilter, LevelFilter};
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
@@ -81,14 +82,14 @@ impl ConfigArgs {
     }
 }
 
-/// The server side of the configured workload and strategy. A new workload gets an arm here and in the
-/// client subcommands (join, simulate).
-fn server_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerParts> {
+/// The server side of the configured workload and strategy. A new workload gets an arm here and in the native
+/// volunteer (`fedvla_server::native_client::volunteer`).
+fn workload_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<ServerParts> {
     match config.workload {
-        WorkloadKind::Linreg => ServerParts::of(&LinRegWorkload::from_config(&config), config, run_dir).map_err(boxed),
+        WorkloadKind::Linreg => server_parts(&LinRegWorkload::from_config(&config), config, run_dir).map_err(boxed),
         WorkloadKind::Smolvla => {
             let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
-            ServerParts::of(&workload, config, run_dir).map_err(boxed)
+            server_parts(&workload, config, run_dir).map_err(boxed)
         }
     }
 }

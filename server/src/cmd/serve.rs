@@ -3,9 +3,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use fedvla_server::coordinator::CoordinatorError;
-use fedvla_server::run_dir::RunDir;
-use fedvla_server::server;
+use fedvla_aggregator::coordinator::CoordinatorError;
+use fedvla_aggregator::run_dir::RunDir;
+use fedvla_app::server;
 use tokio::net::TcpListener;
 use tracing_subscriber::filter::LevelFilter;
 
@@ -41,7 +41,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let dir = run_dir.path().to_owned();
     super::runtime()?.block_on(async move {
         let listener = TcpListener::bind(&listen).await.with_context(|| format!("binding {listen}"))?;
-        let handle = server::start(super::server_parts(config, run_dir)?, listener)?;
+        let handle = server::start(super::workload_parts(config, run_dir)?, listener)?;
         let cancel = handle.cancel_token();
         tokio::spawn(async move {
             super::shutdown_signal().await;

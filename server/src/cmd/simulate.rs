@@ -2,8 +2,8 @@
 
 use std::path::Path;
 
-use fedvla_server::records::read_metrics;
-use fedvla_server::run_dir::{METRICS_FILE, RunDir};
+use fedvla_aggregator::records::read_metrics;
+use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::runs::{self, Bars};
 use tracing_subscriber::filter::LevelFilter;
 
@@ -33,12 +33,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 /// Prints the global held-out loss (and sim success) of the first and the last evaluated round, the run's
 /// headline.
 pub fn print_headline(run: &Path) -> anyhow::Result<()> {
-    let evaluated: Vec<_> = read_metrics(run)?.into_iter().filter_map(|m| Some((m.round, m.global?))).collect();
+    let lines = read_metrics(run)?;
+    let evaluated: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.eval?))).collect();
     if let (Some((r0, first)), Some((rn, last))) = (evaluated.first(), evaluated.last()) {
         println!("global held-out loss: round {r0} {:.4} -> round {rn} {:.4}", first.heldout_loss, last.heldout_loss);
-        if let (Some(a), Some(b)) = (first.success_rate, last.success_rate) {
-            println!("sim success rate: round {r0} {a:.2} -> round {rn} {b:.2}");
-        }
+    }
+    let rolled_out: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.sim?))).collect();
+    if let (Some((r0, first)), Some((rn, last))) = (rolled_out.first(), rolled_out.last()) {
+        println!(
+            "sim success rate on held-out layouts: round {r0} {:.2} -> round {rn} {:.2} ({} episodes)",
+            first.success_rate, last.success_rate, last.rollout_episodes
+        );
     }
     Ok(())
 }

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use fedvla_server::run_dir::{METRICS_FILE, RunDir};
+use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::runs::{self, Bars};
 use tracing_subscriber::filter::LevelFilter;
 

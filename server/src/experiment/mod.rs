@@ -18,10 +18,12 @@ use fedvla_policy::PolicyDir;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
-use crate::config::RunConfig;
-use crate::run_dir::{POLICY_DIR, RunDir};
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::records::RolloutResults;
+use fedvla_aggregator::run_dir::{POLICY_DIR, RunDir, write_atomic};
+use fedvla_workloads::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
+
 use crate::runs::{self, Bars};
-use crate::sim_eval::{Agent, SimEvalOptions, SimEvalSummary, evaluate_in_sim};
 
 /// An experiment, as its TOML file says it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -45,7 +47,7 @@ pub struct ExperimentConfig {
 }
 
 fn default_eval_seed() -> u64 {
-    crate::sim_eval::DEFAULT_SEED
+    fedvla_workloads::sim_eval::DEFAULT_SEED
 }
 
 fn default_output_dir() -> String {
@@ -77,7 +79,7 @@ pub enum Mode {
 pub struct FinalEvaluation {
     /// The last round, whose global model was evaluated.
     pub round: u64,
-    pub sim: SimEvalSummary,
+    pub sim: RolloutResults,
     /// Training wall time (the run, without this final evaluation), seconds.
     pub train_seconds: f64,
 }
@@ -156,7 +158,7 @@ pub fn run(config: &ExperimentConfig, log: &dyn Fn(&Path) -> anyhow::Result<()>)
         bar.println(format!(
             "{} seed {seed}: sim success {:.2} on {} held-out layouts ({:.0} s)",
             arm.name,
-            sim.success_rate,
+            sim.success_rate.unwrap_or(0.0),
             sim.episodes.len(),
             train_seconds
         ));
@@ -170,7 +172,7 @@ pub fn run(config: &ExperimentConfig, log: &dyn Fn(&Path) -> anyhow::Result<()>)
 
 /// The last round a run saved.
 fn final_round(run: &Path) -> anyhow::Result<u64> {
-    let lines = crate::records::read_metrics(run)?;
+    let lines = fedvla_aggregator::records::read_metrics(run)?;
     lines.last().map(|l| l.round).with_context(|| format!("{}: no metrics", run.display()))
 }
 
@@ -180,7 +182,7 @@ fn evaluate_final(
     round: u64,
     config: &ExperimentConfig,
     max_frames: usize,
-) -> anyhow::Result<SimEvalSummary> {
+) -> anyhow::Result<RolloutResults> {
     let policy_dir = RunDir::at(run).model_dir(round).join(POLICY_DIR);
     let policy = PolicyDir::load(&policy_dir).with_context(|| format!("loading {}", policy_dir.display()))?;
     let stats = policy.stats.clone().context("the exported policy has no normalisation statistics")?;
@@ -194,7 +196,7 @@ fn evaluate_final(
 
 fn write_final(run: &Path, evaluation: &FinalEvaluation) -> anyhow::Result<()> {
     let bytes = serde_json::to_vec_pretty(evaluation).expect("the final evaluation serializes");
-    crate::run_dir::write_atomic(&run.join(FINAL_FILE), &bytes)?;
+    write_atomic(&run.join(FINAL_FILE), &bytes)?;
     Ok(())
 }
 

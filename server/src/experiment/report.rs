@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use super::plot::{Curve, plot_curves};
 use super::stats::Interval;
 use super::{ExperimentConfig, Mode, read_final};
-use crate::records::read_metrics;
+use fedvla_aggregator::records::read_metrics;
 
 pub const REPORT_JSON: &str = "report.json";
 pub const REPORT_MD: &str = "report.md";
@@ -81,12 +81,17 @@ struct RunFigures {
 
 fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
     let metrics = read_metrics(run)?;
-    let curve: Vec<(u64, f64, Option<f64>)> =
-        metrics.iter().filter_map(|l| l.global.as_ref().map(|g| (l.round, g.heldout_loss, g.success_rate))).collect();
+    let curve: Vec<(u64, f64, Option<f64>)> = metrics
+        .iter()
+        .filter_map(|l| {
+            let g = l.global.as_ref()?;
+            Some((l.round, g.eval?.heldout_loss, g.sim.map(|s| s.success_rate)))
+        })
+        .collect();
     let last = metrics
         .iter()
         .rev()
-        .find_map(|l| l.global.clone())
+        .find_map(|l| l.global.as_ref()?.eval)
         .with_context(|| format!("{}: no evaluated round", run.display()))?;
     let final_eval = read_final(run)?;
     let episodes = &final_eval.sim.episodes;
@@ -95,10 +100,10 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         heldout_loss: last.heldout_loss,
         action_mse: last.action_mse,
         action_l1: last.action_l1,
-        success_rate: final_eval.sim.success_rate,
+        success_rate: final_eval.sim.success_rate.unwrap_or(0.0),
         successes: episodes.iter().filter(|e| e.success).count() as u64,
         episodes: episodes.len() as u64,
-        success_lengths: episodes.iter().filter(|e| e.success).map(|e| e.length as f64).collect(),
+        success_lengths: episodes.iter().filter(|e| e.success).map(|e| f64::from(e.length)).collect(),
         train_seconds: final_eval.train_seconds,
         curve,
     })
@@ -157,8 +162,8 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
     let report =
         Report { name: config.name.clone(), eval_episodes: config.eval_episodes, eval_seed: config.eval_seed, arms };
     let json = serde_json::to_vec_pretty(&report).expect("the report serializes");
-    crate::run_dir::write_atomic(&dir.join(REPORT_JSON), &json)?;
-    crate::run_dir::write_atomic(&dir.join(REPORT_MD), markdown(&report, config).as_bytes())?;
+    fedvla_aggregator::run_dir::write_atomic(&dir.join(REPORT_JSON), &json)?;
+    fedvla_aggregator::run_dir::write_atomic(&dir.join(REPORT_MD), markdown(&report, config).as_bytes())?;
     let curves = |pick: fn(&(u64, f64, Option<f64>)) -> Option<f64>| -> Vec<Curve> {
         config
             .arms

@@ -7,17 +7,18 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use fedvla_aggregator::config::{Partitioning, RunConfig};
+use fedvla_aggregator::coordinator::RunStatus;
+use fedvla_aggregator::parts::ServerParts;
+use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
+use fedvla_app::server::{self, ServerHandle};
 use fedvla_federation::{
     BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, FedAvg, LocalTrainer,
     NamedTensors, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage, TrainOutput, run_client,
 };
-use fedvla_server::config::{Partitioning, RunConfig};
-use fedvla_server::coordinator::RunStatus;
-use fedvla_server::linreg::{self, LinRegEvaluator, LinRegTrainer, LinRegWorkload};
 use fedvla_server::native_client::NativeTransport;
-use fedvla_server::run_dir::{METRICS_FILE, RunDir};
-use fedvla_server::server::{self, ServerHandle, ServerParts};
-use fedvla_server::workload::Workload;
+use fedvla_workloads::linreg::{self, LinRegEvaluator, LinRegTrainer, LinRegWorkload};
+use fedvla_workloads::workload::Workload;
 use futures_util::{SinkExt, StreamExt};
 use tokio::net::TcpStream;
 use tokio::sync::Semaphore;

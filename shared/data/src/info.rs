@@ -245,5 +245,5 @@ pub(crate) fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
     }
     let text = serde_json::to_string_pretty(value)
         .map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: e.to_string() })?;
-    std::fs::write(path, text).map_err(|e| DataError::io(path, e))
+    fedvla_fs::write_atomic(path, text.as_bytes()).map_err(|e| DataError::io(path, e))
 }

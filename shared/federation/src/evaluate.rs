@@ -1,12 +1,28 @@
 //! Server-side evaluation of the global model.
 
-use std::collections::BTreeMap;
+use serde::{Deserialize, Serialize};
 
 use crate::error::BoxError;
 use crate::tensors::NamedTensors;
 
-/// Named metrics, e.g. `{"heldout_loss": 0.41, "success_rate": 0.7}`.
-pub type EvalMetrics = BTreeMap<String, f64>;
+/// What an evaluator measures of a global model on held-out data: the loss, and for a policy its action errors
+/// in robot units. The console (www/console.js) reads these names from each metrics line's `global`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct EvalMetrics {
+    pub heldout_loss: f64,
+    pub heldout_examples: u64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub action_mse: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub action_l1: Option<f64>,
+}
+
+impl EvalMetrics {
+    /// Whether every figure is a number: a model whose evaluation is not finite is not published.
+    pub fn is_finite(&self) -> bool {
+        self.heldout_loss.is_finite() && [self.action_mse, self.action_l1].iter().flatten().all(|v| v.is_finite())
+    }
+}
 
 /// Evaluates global trainable tensors on held-out data (the SmolVLA held-out evaluation implements this).
 pub trait Evaluator {

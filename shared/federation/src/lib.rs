@@ -8,6 +8,7 @@ pub mod codec;
 pub mod error;
 pub mod evaluate;
 pub mod protocol;
+pub mod seed;
 pub mod strategy;
 pub mod tensors;
 
@@ -20,7 +21,8 @@ pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator};
 pub use protocol::{
     Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
-    ServerMessage, StrategyParams, VolunteerSetup,
+    ServerMessage, StrategyParams, VolunteerSetup, WorkloadKind, routes,
 };
-pub use strategy::{FedAvg, Strategy};
+pub use seed::{fnv1a, mix};
+pub use strategy::{Aggregation, FedAvg, Step, Strategy, WeightedMean, aggregate};
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

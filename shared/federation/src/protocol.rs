@@ -4,11 +4,62 @@ use serde::{Deserialize, Serialize};
 
 /// Bumped on any incompatible change to the control messages or the binary update format.
 /// 2: volunteer setup, sessions for uploads, rollout requests and results.
-/// 3: the join names the shard the client trains on; the server weighs updates by that shard, not by the claim.
+/// 3: the join names the shard the client trains on; the server weighs updates by that shard, not by the claim;
+/// the setup's workload is a [`WorkloadKind`].
 pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Longest volunteer name, in bytes, the server accepts (on join and in `GET /api/volunteer?name=`).
 pub const MAX_NAME_BYTES: usize = 64;
+
+/// The server's HTTP paths, spelled once for the server's router and every client.
+pub mod routes {
+    /// The federation WebSocket.
+    pub const WS: &str = "/ws";
+    /// A volunteer's setup ([`super::VolunteerSetup`]); `?name=` keeps a returning volunteer on its shard,
+    /// `&shard=` asks for one.
+    pub const VOLUNTEER: &str = "/api/volunteer";
+    /// The router's pattern of [`model`].
+    pub const MODEL: &str = "/model/{version}";
+    pub const SHARD: &str = "/shard/{index}";
+    pub const SHARD_MANIFEST: &str = "/shard/{index}/manifest";
+    pub const FROZEN: &str = "/policy/frozen/{tag}";
+    pub const ROLLOUT_VIDEO: &str = "/rollout/{round}/{file}";
+
+    /// The global trainable tensors of `version` (safetensors).
+    pub fn model(version: u64) -> String {
+        format!("/model/{version}")
+    }
+
+    /// Shard `index` as stored.
+    pub fn shard(index: u32) -> String {
+        format!("/shard/{index}")
+    }
+
+    /// Shard `index`'s manifest: its size and SHA-256.
+    pub fn shard_manifest(index: u32) -> String {
+        format!("/shard/{index}/manifest")
+    }
+
+    /// The frozen tensors, named by their content tag.
+    pub fn frozen(tag: &str) -> String {
+        format!("/policy/frozen/{tag}")
+    }
+
+    /// Where a client uploads the rollout video `file` of `round` (authorised by its session).
+    pub fn rollout_video(round: u64, file: &str) -> String {
+        format!("/rollout/{round}/{file}")
+    }
+}
+
+/// What a federation trains.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WorkloadKind {
+    /// SmolVLA's trainable tensors on SO-100 episodes.
+    Smolvla,
+    /// Least-squares linear regression on synthetic data: exercises the federation machinery in milliseconds.
+    Linreg,
+}
 
 /// What a client runs on, so the server can plan tasks.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -127,15 +178,15 @@ pub struct RoundTask {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VolunteerSetup {
     pub protocol_version: u16,
-    /// "smolvla" or "linreg".
-    pub workload: String,
+    pub workload: WorkloadKind,
     /// The shard this volunteer should train on (assigned round-robin), of `shard_count`.
     pub shard_index: u32,
     pub shard_count: u32,
     /// `GET` paths of the shard and its manifest (size and SHA-256).
     pub shard_url: String,
     pub shard_manifest_url: String,
-    /// The policy: `{"policy": <LeRobot config.json>, "vlm": <vlm/config.json>}`; null for linreg.
+    /// The workload's configuration: SmolVLA's policy (`{"policy": <LeRobot config.json>, "vlm":
+    /// <vlm/config.json>}`), linreg's `{"partitioning": ...}`.
     pub policy: serde_json::Value,
     /// `GET` path of the frozen tensors (safetensors), named by their content hash so caches never go stale.
     pub frozen_url: Option<String>,

@@ -1,27 +1,79 @@
-//! Aggregation strategies.
+//! Aggregation strategies, one interface for all: a round opens an [`Aggregation`] from the global model its
+//! clients trained from, folds their updates into it one at a time as they arrive (a streaming rule keeps a
+//! running sum, a robust rule buffers what it needs, a validator sees each update), closes it into the round's
+//! aggregate, and the strategy turns that into the next global model. What the strategy carries from round to
+//! round (server moments, control variates, a clipping norm) changes only when the server commits the round, so
+//! a round retried or skipped leaves it as it was, and it is saved with each round for `--resume`.
 
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
-/// Turns the clients' updates of one round into the next global model.
-///
-/// `&mut self` lets stateful strategies (FedAdam's moments, FedProx schedules) keep state across rounds; the
-/// server owns its strategy in a single task.
-pub trait Strategy {
+/// One round's aggregation in progress.
+pub trait Aggregation: Send {
+    /// Folds one client's update (its trained tensors) with weight `examples`.
+    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError>;
+
+    /// The round's aggregate of everything folded.
+    fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError>;
+}
+
+/// The next global model, with the strategy state it leaves once committed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Step {
+    pub global: NamedTensors,
+    pub state: NamedTensors,
+}
+
+/// Turns the clients' updates of each round into the next global model.
+pub trait Strategy: Send {
     /// Parameters clients need for local training, sent in every task.
     fn client_params(&self) -> StrategyParams;
 
-    /// `updates` are the clients' trained tensors with their example counts, in a deterministic order.
-    fn aggregate(
-        &mut self,
-        global: &NamedTensors,
-        updates: &[(NamedTensors, u64)],
-    ) -> Result<NamedTensors, AggregateError>;
+    /// Opens a round whose clients trained from `global`.
+    fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation>;
+
+    /// The next global model from `global` and the round's `aggregate`; nothing of `self` changes until
+    /// [`Strategy::commit`].
+    fn step(&self, global: &NamedTensors, aggregate: NamedTensors) -> Result<Step, AggregateError> {
+        let _ = global;
+        Ok(Step { global: aggregate, state: NamedTensors::new() })
+    }
+
+    /// Takes up the state of a committed round.
+    fn commit(&mut self, state: NamedTensors) {
+        let _ = state;
+    }
+
+    /// The state to save with a round (and to hand back to [`Strategy::commit`] on resume).
+    fn state(&self) -> NamedTensors {
+        NamedTensors::new()
+    }
 }
 
-/// Federated averaging: the example-weighted mean of the clients' tensors, accumulated in f64. The example total
-/// is summed in u128, so no set of u64 weights can wrap it.
+/// Every update of a round folded in order: the aggregate of `strategy` over `updates` (tensors, weight) from
+/// `global`, and the step it leads to (uncommitted).
+pub fn aggregate<'a>(
+    strategy: &dyn Strategy,
+    global: &NamedTensors,
+    updates: impl IntoIterator<Item = (&'a NamedTensors, u64)>,
+) -> Result<Step, AggregateError> {
+    let mut round = strategy.begin(global);
+    for (index, (update, examples)) in updates.into_iter().enumerate() {
+        round.fold(update, examples).map_err(|e| match e {
+            AggregateError::Mismatch { source, .. } => AggregateError::Mismatch { index, source },
+            other => other,
+        })?;
+    }
+    let step = strategy.step(global, round.finish()?)?;
+    // Finite inputs average to finite values; the check keeps that promise for every strategy's output.
+    step.global.validate(&global.spec()).map_err(AggregateError::Aggregate)?;
+    Ok(step)
+}
+
+/// Federated averaging: the example-weighted mean of the clients' tensors, accumulated in f64 as updates arrive
+/// (memory: one f64 per value, whatever the number of clients). The example total is summed in u128, so no set
+/// of u64 weights can wrap it.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct FedAvg;
 
@@ -30,37 +82,56 @@ impl Strategy for FedAvg {
         StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 }
     }
 
-    fn aggregate(
-        &mut self,
-        global: &NamedTensors,
-        updates: &[(NamedTensors, u64)],
-    ) -> Result<NamedTensors, AggregateError> {
-        if updates.is_empty() {
+    fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
+        Box::new(WeightedMean::new(global))
+    }
+}
+
+/// The running example-weighted sum of a round's updates.
+pub struct WeightedMean {
+    /// Names and shapes of the global model, and the sum per value.
+    sums: Vec<(String, Vec<usize>, Vec<f64>)>,
+    spec: crate::tensors::TensorSpec,
+    total: u128,
+    folded: usize,
+}
+
+impl WeightedMean {
+    pub fn new(global: &NamedTensors) -> Self {
+        let sums =
+            global.iter().map(|(name, t)| (name.to_owned(), t.shape.clone(), vec![0f64; t.values.len()])).collect();
+        Self { sums, spec: global.spec(), total: 0, folded: 0 }
+    }
+}
+
+impl Aggregation for WeightedMean {
+    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
+        update.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index: self.folded, source })?;
+        let w = examples as f64;
+        for (name, _, sum) in &mut self.sums {
+            let values = &update.get(name).expect("validated against the global spec").values;
+            for (a, v) in sum.iter_mut().zip(values) {
+                *a += w * f64::from(*v);
+            }
+        }
+        self.total += u128::from(examples);
+        self.folded += 1;
+        Ok(())
+    }
+
+    fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError> {
+        if self.folded == 0 {
             return Err(AggregateError::NoUpdates);
         }
-        let spec = global.spec();
-        for (index, (update, _)) in updates.iter().enumerate() {
-            update.validate(&spec).map_err(|source| AggregateError::Mismatch { index, source })?;
-        }
-        let total: u128 = updates.iter().map(|(_, n)| u128::from(*n)).sum();
-        if total == 0 {
+        if self.total == 0 {
             return Err(AggregateError::ZeroExamples);
         }
+        let total = self.total as f64;
         let mut out = NamedTensors::new();
-        for (name, t) in global.iter() {
-            let mut acc = vec![0f64; t.values.len()];
-            for (update, n) in updates {
-                let w = *n as f64;
-                let values = &update.get(name).expect("validated against the global spec").values;
-                for (a, v) in acc.iter_mut().zip(values) {
-                    *a += w * f64::from(*v);
-                }
-            }
-            let values = acc.into_iter().map(|a| (a / total as f64) as f32).collect();
-            out.insert(name, t.shape.clone(), values).expect("shape taken from the global model");
+        for (name, shape, sum) in self.sums {
+            let values = sum.into_iter().map(|a| (a / total) as f32).collect();
+            out.insert(name, shape, values).expect("shape taken from the global model");
         }
-        // Finite inputs average to finite values; the check keeps that promise for every strategy's output.
-        out.validate(&spec).map_err(AggregateError::Aggregate)?;
         Ok(out)
     }
 }
@@ -75,11 +146,15 @@ mod tests {
         t
     }
 
+    fn fedavg(global: &NamedTensors, updates: &[(NamedTensors, u64)]) -> Result<NamedTensors, AggregateError> {
+        aggregate(&FedAvg, global, updates.iter().map(|(t, n)| (t, *n))).map(|step| step.global)
+    }
+
     #[test]
     fn fedavg_is_example_weighted_mean() {
         let global = one([0.0, 0.0]);
         let updates = [(one([1.0, 10.0]), 1), (one([4.0, -2.0]), 3)];
-        let out = FedAvg.aggregate(&global, &updates).unwrap();
+        let out = fedavg(&global, &updates).unwrap();
         assert_eq!(out.get("w").unwrap().values, vec![3.25, 1.0]);
     }
 
@@ -88,7 +163,7 @@ mod tests {
         // Summed in f32, 1e8 + 1 rounds back to 1e8 and the mean would come out 0.
         let global = one([0.0, 0.0]);
         let updates = [(one([1.0e8, 1.0]), 1), (one([1.0, 1.0e8]), 1), (one([-1.0e8, -1.0e8]), 1)];
-        let out = FedAvg.aggregate(&global, &updates).unwrap();
+        let out = fedavg(&global, &updates).unwrap();
         assert_eq!(out.get("w").unwrap().values, vec![1.0 / 3.0, 1.0 / 3.0]);
     }
 
@@ -97,22 +172,22 @@ mod tests {
         // 2^63 + 2^63 wraps a u64 sum to 0; the weights are equal, so the mean is the midpoint.
         let global = one([0.0, 0.0]);
         let updates = [(one([1.0, 2.0]), 1 << 63), (one([3.0, 4.0]), 1 << 63)];
-        let out = FedAvg.aggregate(&global, &updates).unwrap();
+        let out = fedavg(&global, &updates).unwrap();
         assert_eq!(out.get("w").unwrap().values, vec![2.0, 3.0]);
         let updates = [(one([1.0, 2.0]), u64::MAX - 46), (one([3.0, 4.0]), 48)];
-        let out = FedAvg.aggregate(&global, &updates).unwrap();
+        let out = fedavg(&global, &updates).unwrap();
         assert!(out.get("w").unwrap().values.iter().all(|v| v.is_finite()));
     }
 
     #[test]
     fn fedavg_refuses_empty_zero_and_mismatched() {
         let global = one([0.0, 0.0]);
-        assert_eq!(FedAvg.aggregate(&global, &[]), Err(AggregateError::NoUpdates));
-        assert_eq!(FedAvg.aggregate(&global, &[(one([1.0, 1.0]), 0)]), Err(AggregateError::ZeroExamples));
+        assert_eq!(fedavg(&global, &[]), Err(AggregateError::NoUpdates));
+        assert_eq!(fedavg(&global, &[(one([1.0, 1.0]), 0)]), Err(AggregateError::ZeroExamples));
         let mut other = NamedTensors::new();
         other.insert("v", vec![2], vec![0.0, 0.0]).unwrap();
         assert!(matches!(
-            FedAvg.aggregate(&global, &[(one([1.0, 1.0]), 1), (other, 1)]),
+            fedavg(&global, &[(one([1.0, 1.0]), 1), (other, 1)]),
             Err(AggregateError::Mismatch { index: 1, .. })
         ));
     }

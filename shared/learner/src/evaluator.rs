@@ -36,11 +36,11 @@ impl Evaluator for HeldOutEvaluator {
         )?;
         let model = self.model.with_trainable(&ParamStore::upload(weights.iter(), &self.device, false));
         let m = heldout_metrics(&model, &self.examples, &self.held_out)?;
-        Ok(EvalMetrics::from([
-            ("heldout_loss".to_string(), m.loss),
-            ("action_mse".to_string(), m.action_mse),
-            ("action_l1".to_string(), m.action_l1),
-            ("heldout_examples".to_string(), self.held_out.rows.len() as f64),
-        ]))
+        Ok(EvalMetrics {
+            heldout_loss: m.loss,
+            heldout_examples: self.held_out.rows.len() as u64,
+            action_mse: Some(m.action_mse),
+            action_l1: Some(m.action_l1),
+        })
     }
 }

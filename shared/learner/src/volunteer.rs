@@ -1,27 +1,59 @@
-//! A volunteer's trainer assembled from what it downloaded (`GET /api/volunteer`, the frozen weights, the global
-//! trainable tensors and its shard), the same way natively and in the browser.
+//! A volunteer's start-up, the same natively and in the browser: fetch the setup (`GET /api/volunteer`), check it
+//! is a server this client can serve (protocol version, workload), download the frozen weights, the shard (checked
+//! against its manifest's size and SHA-256) and the global model, and build the trainer. Only the downloading
+//! differs, behind [`Fetch`]: natively a plain HTTP GET, in the browser a fetch with progress that keeps content
+//! under a content key in the Cache API.
 
+use std::future::Future;
 use std::path::Path;
 
 use burn::tensor::Device;
+use fedvla_data::shard::verify_shard_bytes;
 use fedvla_data::{ClientShard, ShardFileManifest};
-use fedvla_federation::{BoxError, VolunteerSetup};
+use fedvla_federation::{BoxError, PROTOCOL_VERSION, VolunteerSetup, WorkloadKind, routes};
 use fedvla_policy::SmolVlaConfig;
 use fedvla_policy::weights::parse_safetensors;
 
 use crate::examples::ShardExamples;
 use crate::trainer::SmolVlaTrainer;
 
-/// The downloaded bytes a volunteer starts from.
-pub struct Downloads<'a> {
-    pub setup: &'a VolunteerSetup,
-    /// Safetensors of the frozen tensors.
-    pub frozen: &'a [u8],
-    /// Safetensors of the global trainable tensors (any version: the first task replaces them).
-    pub global: &'a [u8],
-    /// The shard file, already checked against its manifest.
-    pub shard: &'a [u8],
-    pub manifest: &'a ShardFileManifest,
+/// How a volunteer downloads from its server.
+pub trait Fetch {
+    /// `GET path` on the server. `cache_key`, when given, names content that never changes under that key (it
+    /// carries a content hash), which a client may keep; `what` names the download for progress.
+    fn get(&self, path: &str, what: &str, cache_key: Option<&str>) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
+}
+
+/// What the server offers volunteer `name`: a new name gets the next shard round-robin, a returning one its
+/// shard again; `shard` asks for that one (it becomes the name's). Refuses a server of another protocol version.
+pub async fn fetch_setup(fetch: &impl Fetch, name: &str, shard: Option<u32>) -> Result<VolunteerSetup, BoxError> {
+    let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
+    let shard = shard.map(|s| format!("&shard={s}")).unwrap_or_default();
+    let bytes = fetch.get(&format!("{}?name={name}{shard}", routes::VOLUNTEER), "setup", None).await?;
+    let setup: VolunteerSetup =
+        serde_json::from_slice(&bytes).map_err(|e| format!("GET {}: {e}", routes::VOLUNTEER))?;
+    if setup.protocol_version != PROTOCOL_VERSION {
+        return Err(format!(
+            "the server speaks protocol {}, this client {PROTOCOL_VERSION}: update the client",
+            setup.protocol_version
+        )
+        .into());
+    }
+    Ok(setup)
+}
+
+/// A shard and its manifest, the shard checked against the manifest's size and SHA-256 before use (and kept
+/// under its SHA-256).
+pub async fn fetch_shard(
+    fetch: &impl Fetch,
+    shard_url: &str,
+    manifest_url: &str,
+) -> Result<(ShardFileManifest, Vec<u8>), BoxError> {
+    let manifest: ShardFileManifest = serde_json::from_slice(&fetch.get(manifest_url, "manifest", None).await?)
+        .map_err(|e| format!("GET {manifest_url}: {e}"))?;
+    let shard = fetch.get(shard_url, "shard", Some(&format!("/shard/sha256/{}", manifest.file_sha256))).await?;
+    verify_shard_bytes(Path::new(&manifest.file), &shard, &manifest)?;
+    Ok((manifest, shard))
 }
 
 /// The policy configuration the server runs.
@@ -34,22 +66,31 @@ pub fn policy_config(setup: &VolunteerSetup) -> Result<SmolVlaConfig, BoxError> 
 
 /// A seed of this volunteer's own for its noise and times, from its name.
 pub fn volunteer_seed(name: &str) -> u64 {
-    name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3))
+    fedvla_federation::fnv1a(name)
 }
 
-/// The trainer of `name` on `device` (autodiff enabled), able to roll out the sim task.
-pub fn volunteer_trainer(
-    downloads: &Downloads,
+/// The SmolVLA volunteer `name` of `setup`, on `device` (autodiff enabled), able to roll out the sim task:
+/// downloads the frozen weights, its shard and the global model the setup names.
+pub async fn smolvla_volunteer(
+    fetch: &impl Fetch,
+    setup: &VolunteerSetup,
     name: &str,
     device: &Device,
     backend: &str,
 ) -> Result<SmolVlaTrainer, BoxError> {
-    let cfg = policy_config(downloads.setup)?;
-    let mut weights = parse_safetensors(downloads.frozen, Path::new("frozen weights"))?;
-    weights.extend(parse_safetensors(downloads.global, Path::new("global model"))?);
-    let shard = ClientShard::from_bytes(Path::new(&downloads.manifest.file), downloads.shard)?;
-    let examples = ShardExamples::new(shard, &cfg)?;
-    let setup = downloads.setup;
+    if setup.workload != WorkloadKind::Smolvla {
+        return Err(format!("the server runs the {:?} workload, not SmolVLA", setup.workload).into());
+    }
+    let cfg = policy_config(setup)?;
+    let frozen_url = setup.frozen_url.as_deref().ok_or("the server offers no frozen weights")?;
+    let frozen = fetch.get(frozen_url, "frozen weights", Some(frozen_url)).await?;
+    let (manifest, shard) = fetch_shard(fetch, &setup.shard_url, &setup.shard_manifest_url).await?;
+    // Never cached: versions are numbered per run, so a kept version 3 could be another run's.
+    let global = fetch.get(&routes::model(setup.model_version), "global model", None).await?;
+
+    let mut weights = parse_safetensors(&frozen, Path::new("frozen weights"))?;
+    weights.extend(parse_safetensors(&global, Path::new("global model"))?);
+    let examples = ShardExamples::new(ClientShard::from_bytes(Path::new(&manifest.file), &shard)?, &cfg)?;
     let tokens = (
         setup.rollout_task_tokens.iter().map(|&i| i64::from(i)).collect(),
         setup.rollout_task_mask.clone(),

@@ -123,7 +123,8 @@ impl NormStats {
         });
         let write_json = |name: &str, v: &Value| {
             let path = dir.join(name);
-            std::fs::write(&path, serde_json::to_string_pretty(v).expect("json")).map_err(|e| PolicyError::io(&path, e))
+            let text = serde_json::to_string_pretty(v).expect("json");
+            fedvla_fs::write_atomic(&path, text.as_bytes()).map_err(|e| PolicyError::io(&path, e))
         };
         write_json(PREPROCESSOR_JSON, &pre)?;
         write_json(POSTPROCESSOR_JSON, &post)?;

@@ -119,7 +119,8 @@ pub fn export(
                 let path = entry.map_err(|e| PolicyError::io(src, e))?.path();
                 if path.is_file() && path.parent() != Some(vlm.as_path()) {
                     let to = vlm.join(path.file_name().expect("file name"));
-                    std::fs::copy(&path, &to).map_err(|e| PolicyError::io(&to, e))?;
+                    let bytes = std::fs::read(&path).map_err(|e| PolicyError::io(&path, e))?;
+                    fedvla_fs::write_atomic(&to, &bytes).map_err(|e| PolicyError::io(&to, e))?;
                 }
             }
         }
@@ -130,10 +131,8 @@ pub fn export(
 }
 
 fn write_json(path: &Path, value: &Value) -> Result<(), PolicyError> {
-    let tmp = path.with_extension("json.partial");
-    std::fs::write(&tmp, serde_json::to_string_pretty(value).expect("serialisable JSON"))
-        .map_err(|e| PolicyError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| PolicyError::io(path, e))
+    let text = serde_json::to_string_pretty(value).expect("serialisable JSON");
+    fedvla_fs::write_atomic(path, text.as_bytes()).map_err(|e| PolicyError::io(path, e))
 }
 
 /// SmolVLMProcessor settings transformers needs to build the processor of a local backbone.

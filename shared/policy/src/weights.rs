@@ -87,13 +87,10 @@ pub fn decode_floats(dtype: Dtype, bytes: &[u8]) -> Option<Vec<f32>> {
     })
 }
 
-/// Writes tensors as F32 safetensors (the dtype LeRobot's `save_pretrained` uses for fp32 models).
-/// Written to a temporary file and renamed, so a crash never leaves a half-written checkpoint.
+/// Writes tensors as F32 safetensors (the dtype LeRobot's `save_pretrained` uses for fp32 models), atomically,
+/// so a crash never leaves a half-written checkpoint.
 pub fn write_safetensors(path: &Path, tensors: &WeightMap) -> Result<(), PolicyError> {
-    let bytes = safetensors_bytes(tensors)?;
-    let tmp = path.with_extension("safetensors.partial");
-    std::fs::write(&tmp, bytes).map_err(|e| PolicyError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| PolicyError::io(path, e))
+    fedvla_fs::write_atomic(path, &safetensors_bytes(tensors)?).map_err(|e| PolicyError::io(path, e))
 }
 
 /// Serialises tensors as F32 safetensors bytes.

@@ -28,7 +28,7 @@ pub mod task;
 
 pub use arm::{JOINT_COUNT, JOINT_NAMES};
 pub use camera::Camera;
-pub use episode::{EpisodeOutcome, run_expert_episode};
+pub use episode::{EpisodeOutcome, ExpertEnd, drive_expert, run_expert_episode};
 pub use expert::Expert;
 pub use render::render;
 pub use scene::{FPS, Scene};

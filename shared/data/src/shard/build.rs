@@ -191,7 +191,7 @@ pub fn build_shard(
     if let Some(dir) = out.parent() {
         std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
     }
-    std::fs::write(out, &bytes).map_err(|e| DataError::io(out, e))?;
+    fedvla_fs::write_atomic(out, &bytes).map_err(|e| DataError::io(out, e))?;
     let file_manifest = ShardFileManifest {
         file: out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
         file_bytes: bytes.len() as u64,

@@ -18,7 +18,7 @@ use percent_encoding::percent_decode_str;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 
-use crate::app::AppState;
+use crate::state::WwwState;
 
 #[derive(Debug, thiserror::Error)]
 pub enum FileError {
@@ -61,7 +61,7 @@ impl FileError {
 
 /// The router's fallback: a page or asset under `www-dir`.
 pub async fn serve(
-    State(state): State<AppState>,
+    State(www): State<WwwState>,
     method: Method,
     uri: Uri,
     headers: HeaderMap,
@@ -80,7 +80,7 @@ pub async fn serve(
                 .into_owned()
         }
     };
-    let path = state.www_dir.join(relative_path(&relative)?);
+    let path = www.dir.join(relative_path(&relative)?);
     let served = match gzip_sibling(&path, &headers).await {
         Some(gz) => file_response_as(&gz, content_type(&path), &headers).await.map(|mut response| {
             response.headers_mut().insert(CONTENT_ENCODING, HeaderValue::from_static("gzip"));
@@ -93,8 +93,8 @@ pub async fn serve(
         response
     });
     match served {
-        Err(FileError::NotFound(path)) if !tokio::fs::metadata(&*state.www_dir).await.is_ok_and(|m| m.is_dir()) => {
-            Err(FileError::NoRoot { path, root: state.www_dir.to_path_buf() })
+        Err(FileError::NotFound(path)) if !tokio::fs::metadata(&*www.dir).await.is_ok_and(|m| m.is_dir()) => {
+            Err(FileError::NoRoot { path, root: www.dir.to_path_buf() })
         }
         other => other,
     }

@@ -9,9 +9,10 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 
-use crate::config::{Partitioning, RunConfig};
-use crate::run_dir::ModelExporter;
-use crate::volunteer::{ShardOffer, VolunteerOffer};
+use fedvla_aggregator::config::{Partitioning, RunConfig, WorkloadKind};
+use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
+use fedvla_aggregator::run_dir::ModelExporter;
+
 use crate::workload::Workload;
 
 /// Raw input size.
@@ -218,10 +219,12 @@ impl Default for LinRegEvaluator {
 impl Evaluator for LinRegEvaluator {
     fn evaluate(&mut self, global: &NamedTensors) -> Result<EvalMetrics, BoxError> {
         let (weight, bias) = head(global)?;
-        Ok(EvalMetrics::from([
-            ("heldout_loss".to_owned(), self.heldout.mse(&weight, bias)),
-            ("heldout_examples".to_owned(), self.heldout.len() as f64),
-        ]))
+        Ok(EvalMetrics {
+            heldout_loss: self.heldout.mse(&weight, bias),
+            heldout_examples: self.heldout.len() as u64,
+            action_mse: None,
+            action_l1: None,
+        })
     }
 }
 
@@ -240,8 +243,6 @@ impl LinRegWorkload {
 }
 
 impl Workload for LinRegWorkload {
-    type Trainer = LinRegTrainer;
-
     fn initial_model(&self) -> Result<NamedTensors, BoxError> {
         Ok(initial_model(self.seed))
     }
@@ -254,16 +255,15 @@ impl Workload for LinRegWorkload {
         Vec::new()
     }
 
-    /// Shards without files (a linreg client generates its shard from its index) and no weights to download.
+    /// Shards without files (a linreg client generates its shard from its index, skewed as `partitioning` says)
+    /// and no weights to download.
     fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
         let shards = (0..self.num_clients)
             .map(|k| ShardOffer { file: None, train_examples: train_examples(k) as u64 })
             .collect();
-        Ok(VolunteerOffer { workload: "linreg".into(), shards, ..VolunteerOffer::default() })
-    }
-
-    fn trainer(&self, shard: usize) -> Result<LinRegTrainer, BoxError> {
-        Ok(LinRegTrainer::new(shard, self.partitioning))
+        let mut offer = VolunteerOffer::shards_only(WorkloadKind::Linreg, shards);
+        offer.policy = serde_json::json!({ "partitioning": self.partitioning });
+        Ok(offer)
     }
 }
 
@@ -301,12 +301,12 @@ mod tests {
     fn training_lowers_heldout_loss() {
         let mut evaluator = LinRegEvaluator::default();
         let initial = initial_model(3);
-        let before = evaluator.evaluate(&initial).unwrap()["heldout_loss"];
+        let before = evaluator.evaluate(&initial).unwrap().heldout_loss;
         let mut trainer = LinRegTrainer::new(0, Partitioning::Iid);
         trainer.set_global(&initial).unwrap();
         let local_before = block_on(trainer.evaluate()).unwrap().loss;
         let out = block_on(trainer.train(&task(1))).unwrap();
-        let after = evaluator.evaluate(&out.update).unwrap()["heldout_loss"];
+        let after = evaluator.evaluate(&out.update).unwrap().heldout_loss;
         assert!(after < before * 0.5, "held-out loss {before} -> {after}");
         assert!(block_on(trainer.evaluate()).unwrap().loss < local_before * 0.5);
         assert_eq!(out.examples, 48);

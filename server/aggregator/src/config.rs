@@ -27,22 +27,13 @@ pub enum StrategyKind {
     Fedavg,
 }
 
-/// What the clients train and the server evaluates.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum WorkloadKind {
-    /// SmolVLA's trainable tensors on SO-100 episodes (see [`crate::smolvla_workload`]).
-    Smolvla,
-    /// Least-squares linear regression on synthetic data (see [`crate::linreg`]): exercises the
-    /// federation machinery in milliseconds.
-    Linreg,
-}
+pub use fedvla_federation::WorkloadKind;
 
 /// The dataset path that means "record the SO-100 sim's expert episodes here on first use".
 pub const EMBEDDED_DATASET: &str = "data/so100-sim";
 
 /// How the dataset is split across clients.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Partitioning {
     /// Every client draws from the same distribution.
@@ -95,7 +86,7 @@ pub struct RunConfig {
 }
 
 /// `configs/default.toml`, built in so the binary runs from anywhere.
-pub const DEFAULT_CONFIG: &str = include_str!("../../configs/default.toml");
+pub const DEFAULT_CONFIG: &str = include_str!("../../../configs/default.toml");
 
 impl Default for RunConfig {
     fn default() -> Self {

@@ -1,14 +1,16 @@
-//! `outputs/<date_time>/`: resolved config, per-round metrics, global models. Crash-safe writes: files are
-//! written to a temporary name and renamed; metrics lines are appended and synced once per round.
+//! `outputs/<date_time>/`: resolved config, per-round metrics, global models, clients' rollouts. Crash-safe:
+//! every file is written atomically ([`fedvla_fs::write_atomic`]), a round's model directory is written under a
+//! temporary name and renamed, metrics lines are appended and synced once per round (a torn last line is dropped
+//! on resume).
 
 use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use fedvla_federation::{BoxError, EvalMetrics, NamedTensors, TensorError};
+use fedvla_federation::{BoxError, NamedTensors, TensorError};
 
 use crate::config::{ConfigError, RunConfig};
-use crate::volunteer::Registry;
+use crate::records::{MetricsLine, RolloutResults, SimFigures};
 
 pub const CONFIG_FILE: &str = "config.toml";
 pub const METRICS_FILE: &str = "metrics.jsonl";
@@ -21,8 +23,10 @@ pub const LOG_FILE: &str = "server.log";
 pub const EVALUATE_DIR: &str = "evaluate";
 /// The trainable tensors of each round; resume reads it back.
 pub const TRAINABLE_FILE: &str = "trainable.safetensors";
-/// The volunteer registry: shard by volunteer name, spent client ids.
-pub const VOLUNTEERS_FILE: &str = "volunteers.json";
+/// What the strategy carries into the next round (server moments, control variates), when it carries anything.
+pub const STRATEGY_FILE: &str = "strategy.safetensors";
+/// `results.json`: a model's sim rollouts ([`RolloutResults`]).
+pub const RESULTS_FILE: &str = "results.json";
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunDirError {
@@ -45,7 +49,7 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> RunDirError + '_ {
 
 /// Writes one round's global model into a fresh directory. The LeRobot policy export and the sim rollouts plug in
 /// here. `config` is the run's configuration as the round ran it: the operator may have changed settings (e.g.
-/// rollout-episodes). Returns what the export measured (the rollouts' success rate), for the round's metrics.
+/// rollout-episodes). Returns what the export measured in the sim, for the round's metrics.
 pub trait ModelExporter: Send + Sync {
     fn export(
         &self,
@@ -53,7 +57,7 @@ pub trait ModelExporter: Send + Sync {
         global: &NamedTensors,
         config: &RunConfig,
         dir: &Path,
-    ) -> Result<EvalMetrics, BoxError>;
+    ) -> Result<Option<SimFigures>, BoxError>;
 }
 
 /// Writes the trainable tensors as `trainable.safetensors` (always on: resume needs it).
@@ -67,9 +71,9 @@ impl ModelExporter for TrainableSafetensors {
         global: &NamedTensors,
         _config: &RunConfig,
         dir: &Path,
-    ) -> Result<EvalMetrics, BoxError> {
-        fs::write(dir.join(TRAINABLE_FILE), global.to_safetensors()?)?;
-        Ok(EvalMetrics::new())
+    ) -> Result<Option<SimFigures>, BoxError> {
+        fedvla_fs::write_atomic(&dir.join(TRAINABLE_FILE), &global.to_safetensors()?)?;
+        Ok(None)
     }
 }
 
@@ -143,8 +147,7 @@ impl RunDir {
         let mut last = None;
         for (i, line) in complete.lines().enumerate() {
             let err = |message: String| RunDirError::Metrics { path: path.clone(), line: i + 1, message };
-            let value: serde_json::Value = serde_json::from_str(line).map_err(|e| err(e.to_string()))?;
-            let round = value["round"].as_u64().ok_or_else(|| err("no `round`".into()))?;
+            let round = serde_json::from_str::<MetricsLine>(line).map_err(|e| err(e.to_string()))?.round;
             if last.is_some_and(|l| round != l + 1) || (last.is_none() && round != 0) {
                 return Err(err(format!("round {round} does not follow round {last:?}")));
             }
@@ -154,7 +157,7 @@ impl RunDir {
     }
 
     /// Appends one round's metrics line and syncs it to disk.
-    pub fn append_metrics(&self, line: &serde_json::Value) -> Result<(), RunDirError> {
+    pub fn append_metrics(&self, line: &MetricsLine) -> Result<(), RunDirError> {
         let path = self.path.join(METRICS_FILE);
         let mut file = OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
         let mut text = serde_json::to_string(line).expect("metrics serialize");
@@ -173,11 +176,11 @@ impl RunDir {
         &self,
         round: u64,
         client_id: u64,
-        results: &serde_json::Value,
+        results: &RolloutResults,
     ) -> Result<(), RunDirError> {
         let dir = self.client_eval_dir(round, client_id);
         fs::create_dir_all(&dir).map_err(io(&dir))?;
-        write_atomic(&dir.join("results.json"), &serde_json::to_vec_pretty(results).expect("JSON values serialize"))
+        write_atomic(&dir.join(RESULTS_FILE), &serde_json::to_vec_pretty(results).expect("results serialize"))
     }
 
     pub fn model_dir(&self, round: u64) -> PathBuf {
@@ -185,57 +188,54 @@ impl RunDir {
     }
 
     /// Writes `global_model/round_N/` through every exporter into a temporary directory, then renames it. Returns
-    /// what the exporters measured.
+    /// what the exporters measured in the sim.
     pub fn save_model(
         &self,
         round: u64,
         global: &NamedTensors,
+        strategy_state: &NamedTensors,
         exporters: &[Box<dyn ModelExporter>],
         config: &RunConfig,
-    ) -> Result<EvalMetrics, RunDirError> {
+    ) -> Result<Option<SimFigures>, RunDirError> {
         let dir = self.model_dir(round);
         let tmp = dir.with_extension("tmp");
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
         }
         fs::create_dir_all(&tmp).map_err(io(&tmp))?;
-        let mut measured = EvalMetrics::new();
+        if !strategy_state.is_empty() {
+            let bytes = strategy_state.to_safetensors().map_err(|source| RunDirError::Model { round, source })?;
+            write_atomic(&tmp.join(STRATEGY_FILE), &bytes)?;
+        }
+        let mut measured = None;
         for exporter in exporters {
             let figures =
                 exporter.export(round, global, config, &tmp).map_err(|source| RunDirError::Export { round, source })?;
-            measured.extend(figures);
+            measured = measured.or(figures);
         }
         if dir.exists() {
             // Left by a run that crashed after saving but before its metrics line: this round is being redone.
             fs::remove_dir_all(&dir).map_err(io(&dir))?;
         }
         fs::rename(&tmp, &dir).map_err(io(&dir))?;
+        fedvla_fs::sync_dir(self.path.join(MODELS_DIR).as_path()).map_err(io(&dir))?;
         Ok(measured)
+    }
+
+    /// The strategy's state after `round`; empty when it carried none.
+    pub fn load_strategy_state(&self, round: u64) -> Result<NamedTensors, RunDirError> {
+        let path = self.model_dir(round).join(STRATEGY_FILE);
+        match fs::read(&path) {
+            Ok(bytes) => NamedTensors::from_safetensors(&bytes).map_err(|source| RunDirError::Model { round, source }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(NamedTensors::new()),
+            Err(e) => Err(io(&path)(e)),
+        }
     }
 
     pub fn load_model(&self, round: u64) -> Result<NamedTensors, RunDirError> {
         let path = self.model_dir(round).join(TRAINABLE_FILE);
         let bytes = fs::read(&path).map_err(io(&path))?;
         NamedTensors::from_safetensors(&bytes).map_err(|source| RunDirError::Model { round, source })
-    }
-
-    /// The volunteer registry a previous server of this run left; `None` for a new run.
-    pub fn read_volunteers(&self) -> Result<Option<Registry>, RunDirError> {
-        let path = self.path.join(VOLUNTEERS_FILE);
-        match fs::read(&path) {
-            Ok(bytes) => serde_json::from_slice(&bytes).map(Some).map_err(|e| RunDirError::Metrics {
-                path,
-                line: e.line(),
-                message: e.to_string(),
-            }),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-            Err(e) => Err(io(&path)(e)),
-        }
-    }
-
-    pub fn write_volunteers(&self, registry: &Registry) -> Result<(), RunDirError> {
-        let bytes = serde_json::to_vec(registry).expect("the registry serializes");
-        write_atomic(&self.path.join(VOLUNTEERS_FILE), &bytes)
     }
 
     /// Opens `server.log` for appending.
@@ -245,13 +245,9 @@ impl RunDir {
     }
 }
 
-/// Writes `bytes` to `path` via a temporary file and a rename.
+/// Writes `bytes` to `path` atomically.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunDirError> {
-    let tmp = path.with_extension("tmp");
-    let mut file = File::create(&tmp).map_err(io(&tmp))?;
-    file.write_all(bytes).map_err(io(&tmp))?;
-    file.sync_all().map_err(io(&tmp))?;
-    fs::rename(&tmp, path).map_err(io(path))
+    fedvla_fs::write_atomic(path, bytes).map_err(io(path))
 }
 
 #[cfg(test)]
@@ -263,8 +259,8 @@ mod tests {
         let base = tempfile::tempdir().unwrap();
         let dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
         assert_eq!(dir.last_completed_round().unwrap(), None);
-        dir.append_metrics(&serde_json::json!({"round": 0})).unwrap();
-        dir.append_metrics(&serde_json::json!({"round": 1})).unwrap();
+        dir.append_metrics(&MetricsLine { round: 0, ..MetricsLine::default() }).unwrap();
+        dir.append_metrics(&MetricsLine { round: 1, ..MetricsLine::default() }).unwrap();
         let path = dir.path().join(METRICS_FILE);
         let mut f = OpenOptions::new().append(true).open(&path).unwrap();
         f.write_all(b"{\"round\": 2, \"glo").unwrap();
@@ -282,8 +278,8 @@ mod tests {
         let mut t = NamedTensors::new();
         t.insert("w", vec![2], vec![1.0, 2.0]).unwrap();
         let exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
-        dir.save_model(3, &t, &exporters, &RunConfig::default()).unwrap();
-        dir.save_model(3, &t, &exporters, &RunConfig::default()).unwrap();
+        dir.save_model(3, &t, &NamedTensors::new(), &exporters, &RunConfig::default()).unwrap();
+        dir.save_model(3, &t, &NamedTensors::new(), &exporters, &RunConfig::default()).unwrap();
         assert_eq!(dir.load_model(3).unwrap(), t);
         assert!(!dir.model_dir(3).with_extension("tmp").exists());
     }

@@ -1,4 +1,5 @@
-//! Starting and stopping a server: the HTTP/WebSocket listener plus the coordinator task.
+//! Starting and stopping a server: the coordinator task and the HTTP/WebSocket listener over it, from the
+//! [`ServerParts`] a workload supplies.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -6,56 +7,25 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use axum::body::Bytes;
-use fedvla_federation::{BoxError, Evaluator, FedAvg, NamedTensors, Strategy, TensorError, UpdateLimits};
+use fedvla_aggregator::control::Controls;
+use fedvla_aggregator::coordinator::{Coordinator, CoordinatorError, PublishedModel, RunStatus};
+use fedvla_aggregator::parts::ServerParts;
+use fedvla_aggregator::registry::Volunteers;
+use fedvla_aggregator::run_dir::{ModelExporter, RunDirError, TrainableSafetensors};
+use fedvla_aggregator::sessions::{Sessions, random_token};
+use fedvla_federation::{TensorError, UpdateLimits};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use crate::app::{AppState, PublishedModel, app};
-use crate::config::{RunConfig, StrategyKind};
-use crate::console::{ConsoleHub, random_token};
-use crate::coordinator::{Coordinator, CoordinatorError, RunStatus};
+use crate::app;
+use crate::console::ConsoleHub;
 use crate::http::{self, HttpLimits};
-use crate::run_dir::{ModelExporter, RunDir, RunDirError, TrainableSafetensors};
-use crate::volunteer::{Sessions, VolunteerOffer, Volunteers};
-use crate::workload::Workload;
+use crate::state::{AppState, ConsoleState, SocketState, VolunteerState, WwwState};
 
 /// Headroom over the exact update size before an update counts as oversized.
 const UPDATE_HEADROOM_BYTES: u64 = 64 * 1024;
-
-/// What a server is made of. The workload (policy or linreg) supplies the initial model and the evaluator.
-pub struct ServerParts {
-    pub config: RunConfig,
-    pub run_dir: RunDir,
-    /// The initial global trainable tensors (ignored when the run directory already has completed rounds).
-    pub initial: NamedTensors,
-    pub strategy: Box<dyn Strategy + Send>,
-    pub evaluator: Box<dyn Evaluator + Send>,
-    /// Extra exporters run after `trainable.safetensors` is written (e.g. the LeRobot policy directory).
-    pub exporters: Vec<Box<dyn ModelExporter>>,
-    /// What volunteers download (shards, policy, frozen weights).
-    pub volunteer: VolunteerOffer,
-}
-
-impl ServerParts {
-    /// The server side of `workload` under `config`: its initial model, evaluator, exporters and volunteer offer,
-    /// and the configured strategy.
-    pub fn of<W: Workload>(workload: &W, config: RunConfig, run_dir: RunDir) -> Result<Self, BoxError> {
-        let strategy: Box<dyn Strategy + Send> = match config.strategy {
-            StrategyKind::Fedavg => Box::new(FedAvg),
-        };
-        Ok(Self {
-            initial: workload.initial_model()?,
-            evaluator: workload.evaluator()?,
-            exporters: workload.exporters(),
-            volunteer: workload.volunteer_offer()?,
-            strategy,
-            config,
-            run_dir,
-        })
-    }
-}
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
@@ -79,13 +49,15 @@ pub struct ServerHandle {
 
 /// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
 pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, StartError> {
-    let ServerParts { config, run_dir, initial, strategy, evaluator, exporters, volunteer } = parts;
+    let ServerParts { config, run_dir, initial, mut strategy, evaluator, exporters, volunteer } = parts;
     let spec = Arc::new(initial.spec());
     let completed = run_dir.last_completed_round()?;
     let global = match completed {
         Some(round) => {
             let saved = run_dir.load_model(round)?;
             saved.validate(&spec).map_err(StartError::Spec)?;
+            // The strategy goes on with what it carried out of that round.
+            strategy.commit(run_dir.load_strategy_state(round)?);
             saved
         }
         None => initial,
@@ -97,7 +69,8 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     let (events_tx, events) = mpsc::channel(1024);
     let generated_token = config.operator_token.is_empty();
     let operator_token = if generated_token { random_token() } else { config.operator_token.clone() };
-    let console = ConsoleHub::new(operator_token.clone(), &config, status.clone());
+    let controls = Controls::new(&config);
+    let console = ConsoleHub::new(operator_token.clone(), controls.clone(), status.clone());
     let cancel = CancellationToken::new();
     let limits = UpdateLimits::for_spec(&spec, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
     let http_limits = HttpLimits {
@@ -106,19 +79,27 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         idle_timeout: Duration::from_millis(config.idle_timeout_ms),
     };
     let sessions = Sessions::default();
+    let volunteers = Arc::new(Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names)?);
     let state = AppState {
-        events: events_tx,
-        model: model_rx,
-        cancel: cancel.clone(),
-        spec,
-        limits,
-        keepalive: http_limits.keepalive(),
-        auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
-        volunteers: Arc::new(Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names)?),
-        sessions: sessions.clone(),
-        run_dir: run_dir.clone(),
-        console: console.clone(),
-        www_dir: Arc::new(PathBuf::from(&config.www_dir)),
+        socket: SocketState {
+            events: events_tx,
+            cancel: cancel.clone(),
+            spec,
+            limits,
+            keepalive: http_limits.keepalive(),
+            auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
+            volunteers: Arc::clone(&volunteers),
+            sessions: sessions.clone(),
+        },
+        volunteers: VolunteerState {
+            volunteers,
+            sessions: sessions.clone(),
+            model: model_rx,
+            run_dir: run_dir.clone(),
+            console: console.clone(),
+        },
+        console: ConsoleState { hub: console.clone(), run_dir: run_dir.clone(), cancel: cancel.clone() },
+        www: WwwState { dir: Arc::new(PathBuf::from(&config.www_dir)) },
     };
     let mut all_exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
     all_exporters.extend(exporters);
@@ -134,7 +115,8 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         completed,
         model_tx,
         status_tx,
-        console: console.clone(),
+        controls,
+        observer: Arc::new(console.clone()),
         sessions,
     };
     let addr = listener.local_addr()?;

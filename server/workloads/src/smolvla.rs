@@ -12,7 +12,7 @@ use fedvla_data::{
     ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard,
     episode_tasks, partition,
 };
-use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors};
+use fedvla_federation::{BoxError, Evaluator, NamedTensors};
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::rollout::TaskTokens;
 use fedvla_learner::tensors::{to_named, to_weights};
@@ -24,11 +24,13 @@ use fedvla_policy::weights::{init_random, safetensors_bytes};
 use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, Tokenizer, WeightMap, WordTokenizer};
 use fedvla_sim::TASK;
 
-use crate::config::{Partitioning, RunConfig};
+use fedvla_aggregator::config::{EMBEDDED_DATASET, Partitioning, RunConfig, WorkloadKind};
+use fedvla_aggregator::records::SimFigures;
+use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
+use fedvla_aggregator::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
+
 use crate::datagen::{GenDataOptions, GenProgress, generate_dataset};
-use crate::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
 use crate::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
-use crate::volunteer::{ShardOffer, VolunteerOffer};
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -52,13 +54,13 @@ pub struct SmolVlaWorkload {
 /// `dataset-episodes` episodes at the policy's image size (`data/so100-sim/<N>ep_<S>px`, recorded by the sim's
 /// expert from seed 0 on first use, whatever the run's seed, so every run of that size shares it).
 fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathBuf> {
-    if config.dataset != crate::config::EMBEDDED_DATASET {
+    if config.dataset != EMBEDDED_DATASET {
         let root = PathBuf::from(&config.dataset);
         anyhow::ensure!(
             root.join("meta/info.json").exists(),
             "dataset {} not found (no meta/info.json); point `dataset` at a LeRobot dataset or use the embedded default {:?}",
             root.display(),
-            crate::config::EMBEDDED_DATASET
+            EMBEDDED_DATASET
         );
         return Ok(root);
     }
@@ -87,7 +89,7 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
 
 /// Where the embedded default dataset of this many episodes at this image size lives.
 pub fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
-    Path::new(crate::config::EMBEDDED_DATASET).join(format!("{}ep_{image_size}px", config.dataset_episodes))
+    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px", config.dataset_episodes))
 }
 
 fn partition_strategy(p: Partitioning) -> PartitionStrategy {
@@ -294,9 +296,9 @@ impl ModelExporter for SimRollouts {
         global: &NamedTensors,
         config: &RunConfig,
         dir: &Path,
-    ) -> Result<EvalMetrics, BoxError> {
+    ) -> Result<Option<SimFigures>, BoxError> {
         if config.rollout_episodes == 0 {
-            return Ok(EvalMetrics::new());
+            return Ok(None);
         }
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
@@ -317,15 +319,11 @@ impl ModelExporter for SimRollouts {
         .map_err(|e| format!("{e:#}"))?;
         tracing::info!(
             round,
-            success_rate = summary.success_rate,
-            mean_length = summary.mean_length,
+            success_rate = ?summary.success_rate,
+            mean_length = ?summary.mean_length,
             "global model rolled out in the sim"
         );
-        Ok(EvalMetrics::from([
-            ("success_rate".to_owned(), summary.success_rate),
-            ("rollout_episodes".to_owned(), summary.episodes.len() as f64),
-            ("rollout_mean_length".to_owned(), summary.mean_length),
-        ]))
+        Ok(summary.figures())
     }
 }
 
@@ -347,17 +345,15 @@ impl ModelExporter for LeRobotExport {
         global: &NamedTensors,
         _config: &RunConfig,
         dir: &Path,
-    ) -> Result<EvalMetrics, BoxError> {
+    ) -> Result<Option<SimFigures>, BoxError> {
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
         export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, Backbone::Generated(&self.tokenizer))?;
-        Ok(EvalMetrics::new())
+        Ok(None)
     }
 }
 
 impl Workload for SmolVlaWorkload {
-    type Trainer = SmolVlaTrainer;
-
     fn initial_model(&self) -> Result<NamedTensors, BoxError> {
         let trainable: WeightMap = self
             .cfg
@@ -396,25 +392,12 @@ impl Workload for SmolVlaWorkload {
     fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
         let (ids, mask, _) = self.task_tokens();
         Ok(VolunteerOffer {
-            workload: "smolvla".into(),
+            workload: WorkloadKind::Smolvla,
             shards: self.client_shards.clone(),
             policy: serde_json::json!({ "policy": self.cfg.to_lerobot_json(), "vlm": self.cfg.vlm_config_json() }),
             frozen: Some(safetensors_bytes(&self.frozen_weights())?.into()),
             rollout_task_tokens: ids.into_iter().map(|i| i as u32).collect(),
             rollout_task_mask: mask,
         })
-    }
-
-    fn trainer(&self, shard: usize) -> Result<Self::Trainer, BoxError> {
-        let path = self
-            .client_shards
-            .get(shard)
-            .and_then(|s| s.file.as_ref())
-            .ok_or_else(|| format!("there are {} shards, not {}", self.client_shards.len(), shard + 1))?;
-        let examples = self.examples(path)?;
-        // Each client draws its own noise and times, reproducibly.
-        let seed = self.seed ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        Ok(SmolVlaTrainer::new(&self.cfg, &self.weights, examples, seed, &Device::flex().autodiff(), "cpu-flex")?
-            .with_rollouts(self.task_tokens()))
     }
 }

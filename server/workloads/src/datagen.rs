@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
-use fedvla_sim::{Camera, Expert, FPS, Scene, TASK, render};
+use fedvla_sim::{Camera, ExpertEnd, FPS, TASK, drive_expert, render};
 
 /// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
 pub const MAX_EPISODE_FRAMES: u32 = 400;
@@ -196,23 +196,18 @@ fn record_episodes(
 /// The expert's episode on the scene of `seed` with both cameras rendered at `size`x`size` before
 /// every action (LeRobot's observation-then-action order), or the frames it ran if it failed.
 fn record_episode(seed: u64, size: u32) -> Result<Episode, u32> {
-    let mut scene = Scene::new(seed);
-    let mut expert = Expert::new(&scene);
     let mut frames = Vec::new();
-    while !expert.done() && scene.frame() < MAX_EPISODE_FRAMES {
-        let state = scene.state().to_vec();
+    let scene = drive_expert(seed, ExpertEnd::PlanDone, MAX_EPISODE_FRAMES, |scene, action| {
         let images = Camera::ALL
             .iter()
             .map(|&camera| RgbImage {
                 width: size,
                 height: size,
-                data: render(&scene, camera, size as usize, size as usize),
+                data: render(scene, camera, size as usize, size as usize),
             })
             .collect();
-        let action = expert.act(&scene);
-        scene.step(action);
-        frames.push(Frame { state, action: action.to_vec(), images });
-    }
+        frames.push(Frame { state: scene.state().to_vec(), action: action.to_vec(), images });
+    });
     if scene.success() { Ok(Episode { task: TASK.to_string(), frames }) } else { Err(scene.frame()) }
 }
 

@@ -7,8 +7,8 @@ use axum::response::{IntoResponse, Response};
 pub enum ServerError {
     #[error("model version {requested} is not served; the current version is {current}")]
     ModelVersion { requested: u64, current: u64 },
-    #[error("no shard {index}: this run has {count}")]
-    NoShard { index: usize, count: usize },
+    #[error(transparent)]
+    Shard(#[from] fedvla_aggregator::registry::VolunteerError),
     #[error("shard unavailable: {0}")]
     ShardIo(String),
     #[error("not found: {0}")]
@@ -26,7 +26,7 @@ pub enum ServerError {
 impl IntoResponse for ServerError {
     fn into_response(self) -> Response {
         let status = match self {
-            Self::ModelVersion { .. } | Self::NoShard { .. } | Self::NotFound(_) => StatusCode::NOT_FOUND,
+            Self::ModelVersion { .. } | Self::Shard(_) | Self::NotFound(_) => StatusCode::NOT_FOUND,
             Self::Unauthorized(_) => StatusCode::UNAUTHORIZED,
             Self::Forbidden(_) => StatusCode::FORBIDDEN,
             Self::BadRequest(_) => StatusCode::BAD_REQUEST,

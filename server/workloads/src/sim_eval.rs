@@ -1,16 +1,18 @@
 //! Evaluation in the SO-100 simulation: roll a policy (or the scripted expert) out over a range of
 //! seeds, film every episode (top and wrist cameras side by side, H.264 mp4) and write
-//! `results.json`. Used by `fedvla eval` and by the federation server after rounds.
+//! `results.json` ([`RolloutResults`]). Used by `fedvla eval`, by the server after rounds and by experiments.
 
 use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use fedvla_aggregator::records::{RolloutResults, VideoError};
+pub use fedvla_aggregator::run_dir::RESULTS_FILE;
 use fedvla_data::RgbImage;
 use fedvla_data::video::{CameraVideoWriter, VideoEncoding};
+use fedvla_federation::RolloutEpisode;
 use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
-use fedvla_sim::{Camera, Expert, FPS, Scene, render};
-use serde::{Deserialize, Serialize};
+use fedvla_sim::{Camera, ExpertEnd, FPS, Scene, drive_expert, render};
 
 /// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
 /// ones no policy was trained on.
@@ -19,8 +21,6 @@ pub const DEFAULT_SEED: u64 = 10_000;
 pub const DEFAULT_MAX_FRAMES: usize = 300;
 /// Width and height of each camera in the videos.
 pub const DEFAULT_VIDEO_SIZE: u32 = 192;
-/// Name of the results file in the output directory.
-pub const RESULTS_FILE: &str = "results.json";
 
 /// Who acts in the episodes.
 #[derive(Clone, Copy)]
@@ -57,35 +57,21 @@ impl Default for SimEvalOptions {
     }
 }
 
-/// An episode whose video could not be written; its result is still counted.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct VideoError {
-    pub episode: usize,
-    pub message: String,
-}
-
-/// What results.json holds.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SimEvalSummary {
-    pub episodes: Vec<EpisodeResult>,
-    pub success_rate: f64,
-    pub mean_length: f64,
-    /// The policy's source, or "expert".
-    pub policy: String,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub video_errors: Vec<VideoError>,
+/// File name of episode `i`'s video.
+fn video_name(episode: usize) -> String {
+    format!("episode_{episode}.mp4")
 }
 
 /// Path of episode `i`'s video in `out`.
 pub fn video_path(out: &Path, episode: usize) -> PathBuf {
-    out.join(format!("episode_{episode}.mp4"))
+    out.join(video_name(episode))
 }
 
 /// Runs `opts.episodes` episodes of `agent` and writes their videos and results.json to `out`.
 /// `progress` is called after every episode with its index and result.
 ///
 /// A video that cannot be written does not stop the evaluation: the episode still counts, the
-/// failure is listed in [`SimEvalSummary::video_errors`] (and results.json), and the partial file
+/// failure is listed in [`RolloutResults::video_errors`] (and results.json), and the partial file
 /// is removed. Errors are returned for what leaves no result to report: the policy failing to act
 /// or results.json not being written.
 pub fn evaluate_in_sim(
@@ -93,7 +79,7 @@ pub fn evaluate_in_sim(
     opts: &SimEvalOptions,
     out: &Path,
     mut progress: impl FnMut(usize, &EpisodeResult),
-) -> anyhow::Result<SimEvalSummary> {
+) -> anyhow::Result<RolloutResults> {
     anyhow::ensure!(opts.episodes > 0, "no episodes to evaluate");
     if let Some(size) = opts.video_size {
         anyhow::ensure!(size > 0 && size % 2 == 0, "video size {size} must be even and non-zero (yuv420p)");
@@ -114,45 +100,34 @@ pub fn evaluate_in_sim(
                 .with_context(|| format!("policy rollout of episode {i} (seed {seed})"))?,
             Agent::Expert => run_expert(seed, opts.max_frames, &mut on_frame),
         };
-        if let Some(Err(message)) = film.map(Film::finish) {
-            video_errors.push(VideoError { episode: i, message });
+        let filmed = film.map(Film::finish);
+        if let Some(Err(message)) = &filmed {
+            video_errors.push(VideoError { episode: i as u32, message: message.clone() });
         }
         progress(i, &result);
-        episodes.push(result);
+        let video = matches!(filmed, Some(Ok(()))).then(|| video_name(i));
+        episodes.push(RolloutEpisode {
+            episode: i as u32,
+            seed: result.seed,
+            success: result.success,
+            length: result.length as u32,
+            video,
+        });
     }
-    let n = episodes.len() as f64;
-    let summary = SimEvalSummary {
-        success_rate: episodes.iter().filter(|e| e.success).count() as f64 / n,
-        mean_length: episodes.iter().map(|e| e.length as f64).sum::<f64>() / n,
-        episodes,
-        policy: agent.label().to_string(),
-        video_errors,
-    };
-    write_results(&out.join(RESULTS_FILE), &summary)?;
-    Ok(summary)
+    let mut results = RolloutResults::of(agent.label().to_string(), None, episodes);
+    results.video_errors = video_errors;
+    let path = out.join(RESULTS_FILE);
+    let json = serde_json::to_vec_pretty(&results).context("serialising the results")?;
+    fedvla_fs::write_atomic(&path, &json).with_context(|| format!("writing {}", path.display()))?;
+    Ok(results)
 }
 
 /// The scripted expert from `Scene::new(seed)`, ended like a policy episode: on success or when
-/// the budget runs out (after its plan the expert holds its last pose, so it gets no extra help).
+/// the budget runs out.
 fn run_expert(seed: u64, max_frames: usize, mut on_frame: impl FnMut(&Scene)) -> EpisodeResult {
-    let mut scene = Scene::new(seed);
-    let mut expert = Expert::new(&scene);
+    let scene = drive_expert(seed, ExpertEnd::Success, max_frames as u32, |scene, _| on_frame(scene));
     on_frame(&scene);
-    let mut length = 0;
-    while length < max_frames && !scene.success() {
-        scene.step(expert.act(&scene));
-        length += 1;
-        on_frame(&scene);
-    }
-    EpisodeResult { seed, success: scene.success(), length }
-}
-
-/// Written through a temporary name, so a reader never sees half a file.
-fn write_results(path: &Path, summary: &SimEvalSummary) -> anyhow::Result<()> {
-    let tmp = path.with_extension("json.partial");
-    let json = serde_json::to_string_pretty(summary).context("serialising the results")?;
-    fs::write(&tmp, json).with_context(|| format!("writing {}", tmp.display()))?;
-    fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    EpisodeResult { seed, success: scene.success(), length: scene.frame() as usize }
 }
 
 /// One episode's video: every camera at `size`x`size`, side by side in [`Camera::ALL`] order. The

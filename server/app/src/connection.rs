@@ -14,16 +14,17 @@ use fedvla_federation::{
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
 
-use crate::app::AppState;
-use crate::console::same_secret;
-use crate::coordinator::{Event, UpdateReceived};
+use fedvla_aggregator::coordinator::{Event, UpdateReceived};
+use fedvla_aggregator::sessions::same_secret;
+
+use crate::state::SocketState;
 use crate::volunteer;
 
 /// A connection that has not joined by then is closed.
 const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// Serves one connection until the client leaves, a fatal error, or shutdown.
-pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: AppState)
+pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: SocketState)
 where
     S: Sink<Message> + Unpin,
     S::Error: Display,
@@ -108,7 +109,7 @@ struct AnnouncedUpdate {
 
 struct Connection<S> {
     sink: S,
-    state: AppState,
+    state: SocketState,
     client_id: Option<u64>,
     upload: Upload,
 }
@@ -345,20 +346,16 @@ where
 mod tests {
     use std::convert::Infallible;
 
-    use axum::body::Bytes;
+    use fedvla_aggregator::config::RunConfig;
+    use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer, Volunteers};
+    use fedvla_aggregator::run_dir::RunDir;
+    use fedvla_aggregator::sessions::Sessions;
     use fedvla_federation::codec::{DEFAULT_MAX_FRAME_BYTES, encode_payload, encode_update};
     use fedvla_federation::{Capabilities, UpdateLimits};
     use futures_util::{sink, stream};
-    use tokio::sync::watch;
     use tokio_util::sync::CancellationToken;
 
     use super::*;
-    use crate::app::PublishedModel;
-    use crate::config::RunConfig;
-    use crate::console::ConsoleHub;
-    use crate::coordinator::RunStatus;
-    use crate::run_dir::RunDir;
-    use crate::volunteer::{Sessions, ShardOffer, VolunteerOffer, Volunteers};
 
     const KEEPALIVE: Duration = Duration::from_secs(20);
 
@@ -387,30 +384,18 @@ mod tests {
             let cancel = CancellationToken::new();
             let run_base = tempfile::tempdir().unwrap();
             let spec = tensors(0.0).spec();
-            let (_model_tx, model) = watch::channel(Arc::new(PublishedModel { version: 0, safetensors: Bytes::new() }));
             let run_dir = RunDir::create(run_base.path(), &RunConfig::default()).unwrap();
-            let offer = VolunteerOffer {
-                workload: "linreg".into(),
-                shards: vec![ShardOffer { file: None, train_examples: 5 }],
-                ..VolunteerOffer::default()
-            };
-            let state = AppState {
+            let shards = vec![ShardOffer { file: None, train_examples: 5 }];
+            let offer = VolunteerOffer::shards_only(fedvla_federation::WorkloadKind::Linreg, shards);
+            let state = SocketState {
                 events: events_tx,
-                model,
                 cancel: cancel.clone(),
                 limits: UpdateLimits::for_spec(&spec, DEFAULT_MAX_FRAME_BYTES, 0),
                 keepalive: KEEPALIVE,
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
-                volunteers: Arc::new(Volunteers::new(offer, run_dir.clone(), 16).unwrap()),
+                volunteers: Arc::new(Volunteers::new(offer, run_dir, 16).unwrap()),
                 sessions: Sessions::default(),
-                run_dir,
-                console: ConsoleHub::new(
-                    "operator".into(),
-                    &RunConfig::default(),
-                    watch::channel(RunStatus::default()).1,
-                ),
-                www_dir: Arc::new(std::path::PathBuf::from("www")),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
                 tx.send(msg).ok();

@@ -1,0 +1,141 @@
+//! Closing a round: the strategy's aggregate of its updates, checked (finite, and finite when evaluated) and on
+//! failure formed again without the update farthest from the global model, then saved and published.
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use fedvla_federation::{AggregateError, BoxError, ErrorCode, EvalMetrics, NamedTensors, aggregate};
+
+use super::round::RoundState;
+use super::{CoordinatorError, PublishedModel, Running, blocking};
+use crate::records::{GlobalMetrics, MetricsLine, timestamp};
+use crate::run_dir::RunDirError;
+
+/// Updates a round may leave out of its aggregate before it gives up and is skipped.
+const MAX_DROPPED_PER_ROUND: usize = 3;
+
+/// What became of a round's updates.
+pub(super) enum Aggregated {
+    /// The global model was replaced (and the strategy's state committed); `eval` is its evaluation when the
+    /// round evaluates.
+    Accepted { eval: Option<EvalMetrics>, contributors: Vec<u64> },
+    /// Every aggregate the round could form failed: the global model stays as it was.
+    Skipped { reason: String },
+}
+
+impl Running {
+    /// Aggregates `updates` (client id, tensors, weight) into the next global model and, when `evaluate`, evaluates
+    /// it. A failed aggregate or evaluation (an error, or a figure that is not finite) drops the update farthest
+    /// from the current global model and tries again, as long as more than `min-fit` updates remain and at most
+    /// [`MAX_DROPPED_PER_ROUND`] times; after that the round is skipped. Either way the run goes on.
+    pub(super) async fn aggregate_checked(
+        &mut self,
+        round: u64,
+        mut updates: Vec<(u64, NamedTensors, u64)>,
+        evaluate: bool,
+        state: &mut RoundState,
+    ) -> Result<Aggregated, CoordinatorError> {
+        let mut dropped = 0;
+        loop {
+            let strategy = Arc::clone(&self.c.strategy);
+            let global = Arc::clone(&self.c.global);
+            let (aggregated, back) = blocking(move || {
+                let strategy = strategy.lock().expect("strategy lock");
+                let step = aggregate(strategy.as_ref(), &global, updates.iter().map(|(_, t, n)| (t, *n)));
+                (step, updates)
+            })
+            .await;
+            updates = back;
+            let (reason, culprit) = match aggregated {
+                Ok(step) => {
+                    let candidate = Arc::new(step.global);
+                    let eval = match evaluate {
+                        true => Some(self.evaluate(round, Arc::clone(&candidate)).await),
+                        false => None,
+                    };
+                    match eval {
+                        Some(Ok(m)) if !m.is_finite() => {
+                            (format!("the aggregate evaluates to non-finite figures {m:?}"), None)
+                        }
+                        Some(Err(e)) => (format!("evaluating the aggregate failed: {e}"), None),
+                        eval => {
+                            self.c.global = candidate;
+                            self.c.strategy.lock().expect("strategy lock").commit(step.state);
+                            let contributors = updates.iter().map(|(id, _, _)| *id).collect();
+                            return Ok(Aggregated::Accepted { eval: eval.and_then(Result::ok), contributors });
+                        }
+                    }
+                }
+                Err(AggregateError::Mismatch { index, source }) => {
+                    (format!("update {index} does not fit the model: {source}"), Some(index))
+                }
+                Err(e) => (format!("aggregation failed: {e}"), None),
+            };
+            if dropped == MAX_DROPPED_PER_ROUND || updates.len() <= self.c.config.min_fit {
+                return Ok(Aggregated::Skipped { reason });
+            }
+            let culprit = culprit.unwrap_or_else(|| farthest(&self.c.global, &updates));
+            let (client_id, _, _) = updates.remove(culprit);
+            dropped += 1;
+            tracing::warn!(round, client_id, %reason, "dropping the update farthest from the global model, re-aggregating");
+            if let Some(p) = state.participants.get_mut(&client_id) {
+                p.dropped = Some(reason);
+            }
+            self.count(ErrorCode::DroppedUpdate);
+        }
+    }
+
+    pub(super) async fn evaluate(&mut self, round: u64, model: Arc<NamedTensors>) -> Result<EvalMetrics, BoxError> {
+        let evaluator = Arc::clone(&self.c.evaluator);
+        let metrics = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&model)).await?;
+        tracing::info!(round, ?metrics, "global model evaluated");
+        Ok(metrics)
+    }
+
+    /// Saves the round's model (its exporters roll it out in the sim) and the strategy's state, appends its
+    /// metrics line, then publishes the model for download. Returns the metrics line as written.
+    pub(super) async fn persist(
+        &mut self,
+        round: u64,
+        mut line: MetricsLine,
+        eval: Option<EvalMetrics>,
+    ) -> Result<MetricsLine, CoordinatorError> {
+        line.round = round;
+        line.model_version = round;
+        line.model_crc32 = self.c.global.checksum();
+        line.rejections =
+            std::mem::take(&mut self.round_rejections).into_iter().map(|(c, n)| (c.as_str().to_owned(), n)).collect();
+        line.timestamp = timestamp();
+        let state = self.c.strategy.lock().expect("strategy lock").state();
+        let (run_dir, exporters, global, config) =
+            (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global), self.c.config.clone());
+        let (line, bytes) = blocking(move || -> Result<_, RunDirError> {
+            let sim = run_dir.save_model(round, &global, &state, &exporters, &config)?;
+            line.global = (eval.is_some() || sim.is_some()).then_some(GlobalMetrics { eval, sim });
+            run_dir.append_metrics(&line)?;
+            let bytes = global.to_safetensors().map_err(|source| RunDirError::Model { round, source })?;
+            Ok((line, bytes))
+        })
+        .await?;
+        self.c.model_tx.send_replace(Arc::new(PublishedModel { version: round, safetensors: Bytes::from(bytes) }));
+        self.c.completed = Some(round);
+        self.c.status_tx.send_modify(|s| s.completed_rounds = round);
+        tracing::info!(round, "round completed");
+        Ok(line)
+    }
+}
+
+/// Index of the update farthest (Euclidean) from `global`: after a failed aggregate, the likeliest culprit.
+fn farthest(global: &NamedTensors, updates: &[(u64, NamedTensors, u64)]) -> usize {
+    let distance = |update: &NamedTensors| -> f64 {
+        global
+            .iter()
+            .map(|(name, g)| {
+                let u = update.get(name).map_or(&[][..], |t| t.values.as_slice());
+                g.values.iter().zip(u).map(|(a, b)| (f64::from(*b) - f64::from(*a)).powi(2)).sum::<f64>()
+            })
+            .sum()
+    };
+    let distances: Vec<f64> = updates.iter().map(|(_, update, _)| distance(update)).collect();
+    (0..updates.len()).max_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap_or(0)
+}

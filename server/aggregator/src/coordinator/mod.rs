@@ -1,0 +1,333 @@
+//! The one aggregation task: owns the clients' outboxes, the global model, the strategy and the run directory,
+//! and is fed by the connections through a channel. It reports what happens to a [`RunObserver`] (the operator
+//! console) and takes the operator's decisions (pause, stop, settings) from the run's [`Controls`] at round
+//! boundaries.
+//!
+//! Round lifecycle: wait until the operator lets rounds run and `min-clients` are connected; take up the
+//! operator's new settings; sample clients (seeded, by `fraction-fit`); send tasks; collect until every sampled
+//! client is done or the deadline passes ([`round`]); aggregate, evaluate and persist ([`close`]); next round. A
+//! round with fewer than `min-fit` updates is retried with a fresh sample. Stopped by the operator, the run ends
+//! after the current round.
+
+mod close;
+mod round;
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use bytes::Bytes;
+use fedvla_federation::{
+    BoxError, Capabilities, ErrorCode, Evaluator, NamedTensors, RolloutEpisode, RoundMetrics, ServerMessage, Strategy,
+};
+use serde_json::json;
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+use crate::config::RunConfig;
+use crate::control::{Controls, RunState, Settings};
+use crate::events::{RunEvent, RunObserver};
+use crate::records::MetricsLine;
+use crate::registry::ShardBinding;
+use crate::run_dir::{ModelExporter, RunDir, RunDirError};
+use crate::sessions::Sessions;
+
+/// What connections tell the coordinator.
+#[derive(Debug)]
+pub enum Event {
+    Joined {
+        client_id: u64,
+        name: String,
+        capabilities: Capabilities,
+        /// The shard the client trains on; `None` when the workload offers none (its updates weigh equally).
+        shard: Option<ShardBinding>,
+        outbox: mpsc::UnboundedSender<ServerMessage>,
+    },
+    Left {
+        client_id: u64,
+    },
+    Update {
+        client_id: u64,
+        update: Box<UpdateReceived>,
+    },
+    Metrics {
+        client_id: u64,
+        metrics: RoundMetrics,
+    },
+    EvalResult {
+        client_id: u64,
+        round: u64,
+        examples: u64,
+        loss: f64,
+    },
+    /// Sim rollouts of the model version a task started from (videos already stored by HTTP).
+    RolloutResult {
+        client_id: u64,
+        round: u64,
+        model_version: u64,
+        episodes: Vec<RolloutEpisode>,
+    },
+    /// A client announced an update (`UpdateHeader`); its frames are on the way.
+    Uploading {
+        client_id: u64,
+    },
+    /// Input refused by a connection (already answered with an `Error`); `None` before the client joined.
+    Rejected {
+        client_id: Option<u64>,
+        code: ErrorCode,
+    },
+}
+
+/// A complete, validated update.
+#[derive(Debug)]
+pub struct UpdateReceived {
+    pub round: u64,
+    pub tensors: NamedTensors,
+    /// What the update header said; the update weighs what the client's shard holds.
+    pub claimed_examples: u64,
+    pub train_loss: f64,
+    /// Bytes of the update's binary frames, headers included.
+    pub bytes: u64,
+}
+
+/// The global model as served: its version and safetensors bytes.
+#[derive(Debug, Clone)]
+pub struct PublishedModel {
+    pub version: u64,
+    pub safetensors: Bytes,
+}
+
+/// Where the run stands, published after every change.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunStatus {
+    pub completed_rounds: u64,
+    pub connected: usize,
+    /// Refused client inputs by error code, since the server started.
+    pub rejections: BTreeMap<ErrorCode, u64>,
+    /// Round attempts that closed with too few updates.
+    pub retried_rounds: u64,
+    /// Rounds whose every aggregate failed (or whose evaluation did): the global model stayed as it was.
+    pub skipped_rounds: u64,
+    /// Updates whose example count claim differed from their shard's training examples (the shard's count was
+    /// used).
+    pub corrected_claims: u64,
+    pub finished: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoordinatorError {
+    #[error("cancelled")]
+    Cancelled,
+    #[error(transparent)]
+    RunDir(#[from] RunDirError),
+    #[error("evaluation failed: {0}")]
+    Evaluate(BoxError),
+}
+
+/// Everything the coordinator owns.
+pub struct Coordinator {
+    pub config: RunConfig,
+    pub events: mpsc::Receiver<Event>,
+    pub cancel: CancellationToken,
+    /// Locked only by the coordinator's own blocking jobs (aggregation runs off the async runtime).
+    pub strategy: Arc<Mutex<Box<dyn Strategy>>>,
+    pub evaluator: Arc<Mutex<Box<dyn Evaluator + Send>>>,
+    pub exporters: Arc<Vec<Box<dyn ModelExporter>>>,
+    pub run_dir: RunDir,
+    pub global: Arc<NamedTensors>,
+    /// The last completed round; `None` for a fresh run (round 0, the initial evaluation, is still to do).
+    pub completed: Option<u64>,
+    pub model_tx: watch::Sender<Arc<PublishedModel>>,
+    pub status_tx: watch::Sender<RunStatus>,
+    pub controls: Controls,
+    pub observer: Arc<dyn RunObserver>,
+    /// Upload rights of the clients asked for rollout videos.
+    pub sessions: Sessions,
+}
+
+struct ClientEntry {
+    name: String,
+    shard: Option<ShardBinding>,
+    outbox: mpsc::UnboundedSender<ServerMessage>,
+}
+
+impl Coordinator {
+    pub async fn run(self) -> Result<RunStatus, CoordinatorError> {
+        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new() };
+        let result = this.run().await;
+        match &result {
+            Err(CoordinatorError::Cancelled) => tracing::info!("coordinator cancelled"),
+            Err(e) => tracing::error!(error = %e, "coordinator stopped"),
+            Ok(_) => {}
+        }
+        result
+    }
+
+    /// The model version clients train from: the last completed round.
+    fn global_version(&self) -> u64 {
+        self.completed.unwrap_or(0)
+    }
+}
+
+struct Running {
+    c: Coordinator,
+    clients: BTreeMap<u64, ClientEntry>,
+    /// Refusals since the last metrics line.
+    round_rejections: BTreeMap<ErrorCode, u64>,
+}
+
+impl Running {
+    async fn run(&mut self) -> Result<RunStatus, CoordinatorError> {
+        let first = match self.c.completed {
+            Some(round) => {
+                tracing::info!(round, "resuming after the last completed round");
+                round + 1
+            }
+            None => {
+                let eval = self.evaluate(0, Arc::clone(&self.c.global)).await.map_err(CoordinatorError::Evaluate)?;
+                let line = self.persist(0, MetricsLine::default(), Some(eval)).await?;
+                self.observe(RunEvent::RoundClosed { round: 0, attempt: 0, updates: 0, line: Some(Box::new(line)) });
+                1
+            }
+        };
+        if self.c.controls.state() == RunState::WaitingForStart {
+            tracing::info!("waiting for the operator to start the run in the console");
+        }
+        for round in first..=self.c.config.num_server_rounds {
+            if !self.run_round(round).await? {
+                tracing::info!(round, "stopped by the operator before this round");
+                break;
+            }
+        }
+        let rounds = self.c.global_version();
+        for client in self.clients.values() {
+            client.outbox.send(ServerMessage::Finished { rounds }).ok();
+        }
+        self.c.controls.finish();
+        self.observe(RunEvent::Finished);
+        self.c.status_tx.send_modify(|s| s.finished = true);
+        tracing::info!(rounds, "run finished");
+        Ok(self.c.status_tx.borrow().clone())
+    }
+
+    /// Runs round `round` to completion; false when the operator stopped the run before it could start.
+    async fn run_round(&mut self, round: u64) -> Result<bool, CoordinatorError> {
+        let mut attempt = 0;
+        // The operator's changes this round's tasks are the first to use, for its metrics line.
+        let mut new_settings = Settings::default();
+        loop {
+            if !self.wait_until_ready().await? {
+                return Ok(false);
+            }
+            if let Some((config, changed)) = self.c.controls.take_settings() {
+                tracing::info!(round, changed = %json!(changed), "this round uses the operator's new settings");
+                self.c.config = config;
+                // Written back so that a resumed run goes on with them.
+                let (run_dir, config) = (self.c.run_dir.clone(), self.c.config.clone());
+                blocking(move || run_dir.write_config(&config)).await?;
+                new_settings.merge(changed);
+            }
+            let started = Instant::now();
+            let state = self.start_round(round, attempt);
+            let mut state = self.collect(state).await?;
+            self.c.sessions.end_uploads(round);
+            let updates = state.take_updates();
+            let count = updates.len() as u32;
+            if updates.len() < self.c.config.min_fit {
+                tracing::warn!(round, attempt, updates = count, min_fit = self.c.config.min_fit, "round retried");
+                self.broadcast(ServerMessage::RoundClosed {
+                    round,
+                    accepted: false,
+                    model_version: self.c.global_version(),
+                    updates: count,
+                });
+                self.c.status_tx.send_modify(|s| s.retried_rounds += 1);
+                self.observe(RunEvent::RoundClosed { round, attempt, updates: count, line: None });
+                attempt += 1;
+                continue;
+            }
+            let evaluate = round.is_multiple_of(self.c.config.eval_every) || round == self.c.config.num_server_rounds;
+            let outcome = self.aggregate_checked(round, updates, evaluate, &mut state).await?;
+            let mut line = MetricsLine {
+                attempt: Some(attempt),
+                seconds: Some(started.elapsed().as_secs_f64()),
+                clients: state.records(),
+                settings: (!new_settings.is_empty()).then_some(new_settings),
+                ..MetricsLine::default()
+            };
+            let (contributors, eval) = match outcome {
+                close::Aggregated::Accepted { eval, contributors } => (contributors, eval),
+                close::Aggregated::Skipped { reason } => {
+                    tracing::warn!(round, %reason, "round skipped: the global model stays as it was");
+                    self.c.status_tx.send_modify(|s| s.skipped_rounds += 1);
+                    line.skipped = Some(reason);
+                    (Vec::new(), None)
+                }
+            };
+            let line = self.persist(round, line, eval).await?;
+            self.broadcast(ServerMessage::RoundClosed {
+                round,
+                accepted: true,
+                model_version: round,
+                updates: contributors.len() as u32,
+            });
+            for id in contributors {
+                self.observe(RunEvent::UpdateAccepted { id });
+            }
+            self.observe(RunEvent::RoundClosed { round, attempt, updates: count, line: Some(Box::new(line)) });
+            return Ok(true);
+        }
+    }
+
+    /// Waits until a round may start: the operator lets rounds run and `min-clients` are connected. False when the
+    /// operator stopped the run instead.
+    async fn wait_until_ready(&mut self) -> Result<bool, CoordinatorError> {
+        let mut operator = self.c.controls.run_state();
+        loop {
+            let state = *operator.borrow_and_update();
+            match state {
+                RunState::Stopping | RunState::Finished => return Ok(false),
+                RunState::Running if self.clients.len() >= self.c.config.min_clients => return Ok(true),
+                RunState::WaitingForStart | RunState::Paused | RunState::Running => {}
+            }
+            tokio::select! {
+                // The controls, which hold the sender, live as long as the coordinator.
+                _ = operator.changed() => {}
+                event = self.next_event() => {
+                    let event = event?;
+                    self.handle(event, None);
+                }
+            }
+        }
+    }
+
+    async fn next_event(&mut self) -> Result<Event, CoordinatorError> {
+        tokio::select! {
+            () = self.c.cancel.cancelled() => Err(CoordinatorError::Cancelled),
+            event = self.c.events.recv() => event.ok_or(CoordinatorError::Cancelled),
+        }
+    }
+
+    fn observe(&self, event: RunEvent) {
+        self.c.observer.observe(event);
+    }
+
+    fn count(&mut self, code: ErrorCode) {
+        *self.round_rejections.entry(code).or_default() += 1;
+        self.c.status_tx.send_modify(|s| *s.rejections.entry(code).or_default() += 1);
+    }
+
+    fn broadcast(&self, msg: ServerMessage) {
+        for client in self.clients.values() {
+            client.outbox.send(msg.clone()).ok();
+        }
+    }
+}
+
+/// Runs `f` on tokio's blocking pool (aggregation, evaluation, file writes), passing its panic on.
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+    match tokio::task::spawn_blocking(f).await {
+        Ok(out) => out,
+        Err(e) => std::panic::resume_unwind(e.into_panic()),
+    }
+}

@@ -1,0 +1,247 @@
+//! A round in flight: sampling its clients, sending their tasks, and handling what connections report until every
+//! sampled client is done or the deadline passes.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use fedvla_federation::{ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, fnv1a, mix};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+
+use super::{ClientEntry, CoordinatorError, Event, Running, UpdateReceived};
+use crate::events::{ClientState, RunEvent};
+use crate::records::{ClientRecord, RolloutResults};
+
+/// First seed of the layouts clients roll out (far from the seeds datasets are recorded on); each shard has its
+/// own block of them, the same every round, so success rates compare from round to round.
+const CLIENT_ROLLOUT_SEED: u64 = 20_000;
+const CLIENT_ROLLOUT_SEEDS_PER_SHARD: u64 = 1_000;
+
+#[derive(Default)]
+pub(super) struct Participant {
+    name: String,
+    update: Option<UpdateReceived>,
+    /// What the update weighs: the client's shard's training examples (1 each where no shard is known).
+    examples: u64,
+    /// Why the update was left out of the aggregate, when it was.
+    pub(super) dropped: Option<String>,
+    metrics: Option<RoundMetrics>,
+    eval: Option<(u64, f64)>,
+    rollout: Option<RolloutResults>,
+    refused: Vec<ErrorCode>,
+    done: bool,
+}
+
+pub(super) struct RoundState {
+    round: u64,
+    pub(super) participants: BTreeMap<u64, Participant>,
+    /// Whether the tasks asked for sim rollouts, which clients run after their held-out evaluation.
+    rollouts_requested: bool,
+}
+
+impl RoundState {
+    /// The round's updates (client id, tensors, weight), in the order of the clients' names, so the aggregate
+    /// does not depend on arrival or id order.
+    pub(super) fn take_updates(&mut self) -> Vec<(u64, NamedTensors, u64)> {
+        let mut updates: Vec<(&str, u64, NamedTensors, u64)> = self
+            .participants
+            .iter_mut()
+            .filter_map(|(id, p)| {
+                let tensors = std::mem::take(&mut p.update.as_mut()?.tensors);
+                Some((p.name.as_str(), *id, tensors, p.examples))
+            })
+            .collect();
+        updates.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+        updates.into_iter().map(|(_, id, t, n)| (id, t, n)).collect()
+    }
+
+    /// One metrics record per sampled client.
+    pub(super) fn records(&self) -> Vec<ClientRecord> {
+        self.participants
+            .iter()
+            .map(|(&client_id, p)| ClientRecord {
+                client_id,
+                name: p.name.clone(),
+                accepted: p.update.is_some() && p.dropped.is_none(),
+                examples: p.update.as_ref().map(|_| p.examples),
+                claimed_examples: p.update.as_ref().map(|u| u.claimed_examples),
+                dropped: p.dropped.clone(),
+                train_loss: p.update.as_ref().map(|u| u.train_loss),
+                update_bytes: p.update.as_ref().map(|u| u.bytes),
+                seconds: p.metrics.as_ref().map(|m| m.seconds),
+                bytes_up: p.metrics.as_ref().map(|m| m.bytes_up),
+                bytes_down: p.metrics.as_ref().map(|m| m.bytes_down),
+                eval_examples: p.eval.map(|e| e.0),
+                eval_loss: p.eval.map(|e| e.1),
+                rollout: p.rollout.clone(),
+                refused: p.refused.iter().map(|c| c.as_str().to_owned()).collect(),
+            })
+            .collect()
+    }
+}
+
+impl Running {
+    /// Samples clients and sends them their tasks.
+    pub(super) fn start_round(&mut self, round: u64, attempt: u64) -> RoundState {
+        let cfg = &self.c.config;
+        let mut pool: Vec<(&str, u64)> = self.clients.iter().map(|(id, c)| (c.name.as_str(), *id)).collect();
+        pool.sort();
+        let n = pool.len();
+        let k = cfg.sampled_clients(n);
+        let mut rng = StdRng::seed_from_u64(mix(mix(cfg.seed, round), attempt));
+        let mut picked = rand::seq::index::sample(&mut rng, n, k).into_vec();
+        picked.sort_unstable();
+        let version = self.c.global_version();
+        let mut participants = BTreeMap::new();
+        let mut rollouts_requested = false;
+        for i in picked {
+            let (name, client_id) = pool[i];
+            let client = &self.clients[&client_id];
+            let evaluates = round.is_multiple_of(cfg.eval_every);
+            // A shard's own layouts: a volunteer without one gets a block by its name.
+            let block = client.shard.map_or(fnv1a(name) % 1_000, |s| s.index as u64);
+            let task = RoundTask {
+                round,
+                model_version: version,
+                local_steps: cfg.local_steps,
+                batch_size: cfg.batch_size,
+                lr: cfg.lr,
+                seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
+                strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
+                deadline_ms: cfg.round_deadline_ms,
+                eval_request: evaluates,
+                rollout: (cfg.client_rollout_episodes > 0 && evaluates).then(|| RolloutRequest {
+                    episodes: cfg.client_rollout_episodes,
+                    first_seed: CLIENT_ROLLOUT_SEED + block * CLIENT_ROLLOUT_SEEDS_PER_SHARD,
+                    max_frames: cfg.rollout_max_frames,
+                }),
+            };
+            // Clients evaluate the model they start from (held-out loss, then sim rollouts) before they train.
+            let first_step = if task.eval_request || task.rollout.is_some() {
+                ClientState::Evaluating
+            } else {
+                ClientState::Training
+            };
+            rollouts_requested |= task.rollout.is_some();
+            if let Some(request) = &task.rollout {
+                self.c.sessions.allow_uploads(client_id, round, request.episodes);
+            }
+            // Weighed by what the server knows the client holds, never by what its update claims.
+            let examples = client.shard.map_or(1, |s| s.train_examples);
+            client.outbox.send(ServerMessage::RoundTask(task)).ok();
+            self.observe(RunEvent::ClientState { id: client_id, state: first_step });
+            participants.insert(client_id, Participant { name: name.to_owned(), examples, ..Participant::default() });
+        }
+        tracing::info!(round, attempt, sampled = k, connected = n, "round started");
+        self.observe(RunEvent::RoundStarted { round, attempt, sampled: participants.keys().copied().collect() });
+        RoundState { round, participants, rollouts_requested }
+    }
+
+    /// Handles events until every participant is done or the deadline passes.
+    pub(super) async fn collect(&mut self, mut state: RoundState) -> Result<RoundState, CoordinatorError> {
+        let deadline = tokio::time::Instant::now() + Duration::from_millis(self.c.config.round_deadline_ms);
+        while !state.participants.values().all(|p| p.done) {
+            tokio::select! {
+                () = tokio::time::sleep_until(deadline) => {
+                    let late: Vec<u64> = state.participants.iter().filter(|(_, p)| !p.done).map(|(id, _)| *id).collect();
+                    tracing::warn!(round = state.round, ?late, "deadline passed");
+                    break;
+                }
+                event = self.next_event() => {
+                    let event = event?;
+                    self.handle(event, Some(&mut state));
+                }
+            }
+        }
+        Ok(state)
+    }
+
+    pub(super) fn handle(&mut self, event: Event, round: Option<&mut RoundState>) {
+        let current = round.as_deref().map(|r| r.round);
+        let rollouts_requested = round.as_deref().is_some_and(|r| r.rollouts_requested);
+        let mut participants = round.map(|r| &mut r.participants);
+        // Each event concerns at most one participant, so the map is taken once.
+        let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
+        match event {
+            Event::Joined { client_id, name, capabilities, shard, outbox } => {
+                tracing::debug!(client_id, ?capabilities, "registered");
+                self.observe(RunEvent::ClientJoined {
+                    id: client_id,
+                    name: name.clone(),
+                    backend: capabilities.backend,
+                });
+                self.clients.insert(client_id, ClientEntry { name, shard, outbox });
+            }
+            Event::Left { client_id } => {
+                self.clients.remove(&client_id);
+                self.observe(RunEvent::ClientLeft { id: client_id });
+                if let Some(p) = participant(client_id) {
+                    p.done = true;
+                }
+            }
+            Event::Update { client_id, update } => match participant(client_id) {
+                Some(p) if Some(update.round) == current && p.update.is_none() => {
+                    let known = self.clients.get(&client_id).and_then(|c| c.shard);
+                    if known.is_some_and(|s| s.train_examples != update.claimed_examples) {
+                        tracing::info!(
+                            client_id,
+                            claimed = update.claimed_examples,
+                            weight = p.examples,
+                            "update claims another example count than its shard holds: weighed by the shard"
+                        );
+                        self.c.status_tx.send_modify(|s| s.corrected_claims += 1);
+                    }
+                    p.update = Some(*update);
+                }
+                _ => {
+                    let message =
+                        format!("update for round {} is not expected (current round {current:?})", update.round);
+                    tracing::warn!(client_id, %message, "refused update");
+                    self.count(ErrorCode::StaleRound);
+                    if let Some(c) = self.clients.get(&client_id) {
+                        c.outbox.send(ServerMessage::Error { code: ErrorCode::StaleRound, message }).ok();
+                    }
+                }
+            },
+            Event::Uploading { client_id } => {
+                self.observe(RunEvent::ClientState { id: client_id, state: ClientState::Uploading });
+            }
+            Event::Metrics { client_id, metrics } => {
+                self.observe(RunEvent::ClientState { id: client_id, state: ClientState::Idle });
+                self.observe(RunEvent::ClientBytes { id: client_id, up: metrics.bytes_up, down: metrics.bytes_down });
+                if let Some(p) = participant(client_id).filter(|_| Some(metrics.round) == current) {
+                    p.metrics = Some(metrics);
+                    p.done = true;
+                }
+            }
+            Event::EvalResult { client_id, round: r, examples, loss } => {
+                if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
+                    p.eval = Some((examples, loss));
+                    let next = if rollouts_requested { ClientState::Evaluating } else { ClientState::Training };
+                    self.observe(RunEvent::ClientState { id: client_id, state: next });
+                }
+            }
+            Event::RolloutResult { client_id, round: r, model_version, episodes } => {
+                if let Some(p) = participant(client_id).filter(|_| Some(r) == current) {
+                    let record = RolloutResults::of(format!("client {client_id}"), Some(model_version), episodes);
+                    // Small: written on the coordinator's task.
+                    if let Err(e) = self.c.run_dir.write_client_results(r, client_id, &record) {
+                        tracing::warn!(client_id, round = r, error = %e, "client rollout results not stored");
+                    }
+                    tracing::info!(client_id, round = r, success_rate = ?record.success_rate, "client rolled out the global model");
+                    p.rollout = Some(record);
+                    self.observe(RunEvent::ClientState { id: client_id, state: ClientState::Training });
+                }
+            }
+            Event::Rejected { client_id, code } => {
+                self.count(code);
+                if let Some(p) = client_id.and_then(participant) {
+                    p.refused.push(code);
+                    p.done = true;
+                }
+            }
+        }
+        let connected = self.clients.len();
+        self.c.status_tx.send_if_modified(|s| std::mem::replace(&mut s.connected, connected) != connected);
+    }
+}

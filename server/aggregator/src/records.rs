@@ -1,0 +1,174 @@
+//! The records a run writes for others to read, each defined once: a line of `metrics.jsonl` ([`MetricsLine`],
+//! with a record per sampled client) and a model's sim rollouts ([`RolloutResults`], every `results.json`). The
+//! coordinator, `fedvla train`, `fedvla eval` and the server's rollouts write them; resume, the console
+//! (www/console.js reads these field names: `round`, `attempt`, `seconds`, `clients[].accepted`,
+//! `clients[].train_loss`, `global.heldout_loss`, `global.action_mse`, `settings`; `results.json`'s
+//! `success_rate` and `model_version`), `simulate`'s headline and the experiment reports read them.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use fedvla_federation::{EvalMetrics, RolloutEpisode};
+use serde::{Deserialize, Serialize};
+
+use crate::control::Settings;
+use crate::run_dir::METRICS_FILE;
+
+/// One round of a run: a federation's aggregated (or skipped) round, or the centralized baseline after the
+/// samples of one federated round. Round 0 is the initial model's evaluation.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct MetricsLine {
+    pub round: u64,
+    /// The global model's version after the round (equal to the round).
+    pub model_version: u64,
+    /// CRC-32 of the global model's tensors.
+    pub model_crc32: u32,
+    /// Which attempt at the round closed it (attempts with too few updates are retried).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub attempt: Option<u64>,
+    /// Wall-clock seconds of the round, training and evaluation included.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seconds: Option<f64>,
+    pub timestamp: String,
+    /// The sampled clients (none for round 0 and for the centralized baseline).
+    #[serde(default)]
+    pub clients: Vec<ClientRecord>,
+    /// The global model's figures, when the round evaluated or rolled it out.
+    #[serde(default)]
+    pub global: Option<GlobalMetrics>,
+    /// Why the round was skipped (every aggregate it could form failed); the model stayed as it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skipped: Option<String>,
+    /// The operator's settings this round was the first to use.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub settings: Option<Settings>,
+    /// Refused client inputs since the previous line, by error code.
+    #[serde(default)]
+    pub rejections: BTreeMap<String, u64>,
+    /// Centralized baseline: mean training loss of the round's steps and the samples consumed so far.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub train_loss: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub samples: Option<u64>,
+}
+
+/// A global model's figures: its held-out evaluation and its rollouts in the sim.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct GlobalMetrics {
+    #[serde(flatten)]
+    pub eval: Option<EvalMetrics>,
+    #[serde(flatten)]
+    pub sim: Option<SimFigures>,
+}
+
+/// A model's success in the sim on held-out layouts.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SimFigures {
+    pub success_rate: f64,
+    pub rollout_episodes: u64,
+    pub rollout_mean_length: f64,
+}
+
+/// One sampled client of a round.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ClientRecord {
+    pub client_id: u64,
+    pub name: String,
+    /// Whether its update went into the round's aggregate.
+    pub accepted: bool,
+    /// What its update weighed: its shard's training examples.
+    pub examples: Option<u64>,
+    /// What its update's header claimed.
+    pub claimed_examples: Option<u64>,
+    /// Why its update was left out of the aggregate after the aggregate or its evaluation failed.
+    pub dropped: Option<String>,
+    pub train_loss: Option<f64>,
+    /// Bytes of its update's binary frames, headers included.
+    pub update_bytes: Option<u64>,
+    /// Seconds it spent on the round, as it reported.
+    pub seconds: Option<f64>,
+    pub bytes_up: Option<u64>,
+    pub bytes_down: Option<u64>,
+    /// Its held-out evaluation of the model the round started from.
+    pub eval_examples: Option<u64>,
+    pub eval_loss: Option<f64>,
+    /// Its sim rollouts of the model the round started from.
+    pub rollout: Option<RolloutResults>,
+    /// Error codes of its inputs the server refused this round.
+    #[serde(default)]
+    pub refused: Vec<String>,
+}
+
+/// A model's rollouts in the sim: `results.json` of `fedvla eval`, of each round's global model, and of each
+/// client's rollouts (`evaluate/round_N/client_K/`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RolloutResults {
+    /// Who acted: a policy directory, "expert", the round's global model, or a client.
+    pub policy: String,
+    /// The global model version a client rolled out (the one its round started from).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_version: Option<u64>,
+    pub episodes: Vec<RolloutEpisode>,
+    /// Successful episodes over all (none without episodes).
+    pub success_rate: Option<f64>,
+    pub mean_length: Option<f64>,
+    /// Episodes whose video could not be written; their results still count.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub video_errors: Vec<VideoError>,
+}
+
+impl RolloutResults {
+    /// The results of `episodes`, with their success rate and mean length.
+    pub fn of(policy: String, model_version: Option<u64>, episodes: Vec<RolloutEpisode>) -> Self {
+        let n = episodes.len() as f64;
+        let (success_rate, mean_length) = match episodes.is_empty() {
+            true => (None, None),
+            false => (
+                Some(episodes.iter().filter(|e| e.success).count() as f64 / n),
+                Some(episodes.iter().map(|e| f64::from(e.length)).sum::<f64>() / n),
+            ),
+        };
+        Self { policy, model_version, episodes, success_rate, mean_length, video_errors: Vec::new() }
+    }
+
+    /// The figures a metrics line carries.
+    pub fn figures(&self) -> Option<SimFigures> {
+        Some(SimFigures {
+            success_rate: self.success_rate?,
+            rollout_episodes: self.episodes.len() as u64,
+            rollout_mean_length: self.mean_length?,
+        })
+    }
+}
+
+/// An episode whose video could not be written.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VideoError {
+    pub episode: u32,
+    pub message: String,
+}
+
+/// The time as metrics lines record it (RFC 3339, local time).
+pub fn timestamp() -> String {
+    chrono::Local::now().to_rfc3339()
+}
+
+/// Every complete line of a run's `metrics.jsonl` (a line being appended right now is left for the next read).
+pub fn read_metrics(run_dir: &Path) -> std::io::Result<Vec<MetricsLine>> {
+    let text = match std::fs::read_to_string(run_dir.join(METRICS_FILE)) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(e),
+    };
+    let complete = &text[..text.rfind('\n').map_or(0, |i| i + 1)];
+    complete
+        .lines()
+        .enumerate()
+        .map(|(i, line)| {
+            serde_json::from_str(line).map_err(|e| {
+                std::io::Error::new(std::io::ErrorKind::InvalidData, format!("{METRICS_FILE} line {}: {e}", i + 1))
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,84 @@
+//! The upload sessions of connected clients: the bearer token each connection's welcome carries, and the rollout
+//! videos each client may still upload for the round that asked it for them (and no other).
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// Session tokens of the connected clients, for their HTTP uploads, and the rollout videos each may upload.
+#[derive(Clone, Default)]
+pub struct Sessions {
+    inner: Arc<Mutex<SessionTable>>,
+}
+
+#[derive(Default)]
+struct SessionTable {
+    by_token: HashMap<String, u64>,
+    /// Client id -> (round, videos it may still upload for that round).
+    uploads: HashMap<u64, (u64, u32)>,
+}
+
+impl Sessions {
+    /// A fresh unguessable token for `client_id`.
+    pub fn open(&self, client_id: u64) -> String {
+        let token = random_token();
+        self.table().by_token.insert(token.clone(), client_id);
+        token
+    }
+
+    pub fn close(&self, client_id: u64) {
+        let mut table = self.table();
+        table.by_token.retain(|_, id| *id != client_id);
+        table.uploads.remove(&client_id);
+    }
+
+    /// Lets `client_id` upload `videos` rollout videos for `round` (its task asked for that many episodes).
+    pub fn allow_uploads(&self, client_id: u64, round: u64, videos: u32) {
+        self.table().uploads.insert(client_id, (round, videos));
+    }
+
+    /// Ends every upload permission of `round` (it closed).
+    pub fn end_uploads(&self, round: u64) {
+        self.table().uploads.retain(|_, (r, _)| *r != round);
+    }
+
+    pub fn client(&self, token: &str) -> Option<u64> {
+        self.table().by_token.get(token).copied()
+    }
+
+    /// Takes one of `client_id`'s video uploads for `round`.
+    pub fn take_upload(&self, client_id: u64, round: u64) -> Result<(), UploadRefused> {
+        match self.table().uploads.get_mut(&client_id) {
+            Some((r, left)) if *r == round && *left > 0 => {
+                *left -= 1;
+                Ok(())
+            }
+            Some((r, 0)) if *r == round => Err(UploadRefused::AllTaken { client_id, round }),
+            _ => Err(UploadRefused::NotAsked { client_id, round }),
+        }
+    }
+
+    fn table(&self) -> MutexGuard<'_, SessionTable> {
+        self.inner.lock().expect("sessions lock")
+    }
+}
+
+/// Why a video upload was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum UploadRefused {
+    #[error("round {round} asked client {client_id} for no rollout videos")]
+    NotAsked { client_id: u64, round: u64 },
+    #[error("client {client_id} has uploaded every video round {round} asked it for")]
+    AllTaken { client_id: u64, round: u64 },
+}
+
+/// A fresh token of 128 random bits from the OS, as 32 hex digits.
+pub fn random_token() -> String {
+    use rand::{Rng, SeedableRng};
+    let bytes: [u8; 16] = rand::rngs::StdRng::from_os_rng().random();
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Compares in time independent of where the strings differ, so a token cannot be guessed byte by byte.
+pub fn same_secret(a: &str, b: &str) -> bool {
+    a.len() == b.len() && a.bytes().zip(b.bytes()).fold(0u8, |diff, (x, y)| diff | (x ^ y)) == 0
+}

@@ -1,0 +1,100 @@
+//! What the routes share, split by the route groups that need it: the WebSocket ([`SocketState`]), the
+//! volunteers' downloads and uploads ([`VolunteerState`]), the operator console ([`ConsoleState`]) and the pages
+//! ([`WwwState`]). Each handler extracts only its own group's state; [`AppState`] holds them all for the router.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::extract::FromRef;
+use fedvla_aggregator::coordinator::{Event, PublishedModel};
+use fedvla_aggregator::registry::Volunteers;
+use fedvla_aggregator::run_dir::RunDir;
+use fedvla_aggregator::sessions::Sessions;
+use fedvla_federation::{TensorSpec, UpdateLimits};
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+use crate::console::ConsoleHub;
+
+#[derive(Clone)]
+pub struct AppState {
+    pub socket: SocketState,
+    pub volunteers: VolunteerState,
+    pub console: ConsoleState,
+    pub www: WwwState,
+}
+
+/// The federation WebSocket's: channels to the coordinator and what a join and an update are checked against.
+#[derive(Clone)]
+pub struct SocketState {
+    pub events: mpsc::Sender<Event>,
+    pub cancel: CancellationToken,
+    pub spec: Arc<TensorSpec>,
+    pub limits: UpdateLimits,
+    /// How often an idle WebSocket is pinged (well within the listener's idle timeout).
+    pub keepalive: Duration,
+    /// Token clients must present on join; `None` means no authentication.
+    pub auth_token: Option<Arc<str>>,
+    /// Who trains on which shard.
+    pub volunteers: Arc<Volunteers>,
+    /// Upload sessions, opened by each join.
+    pub sessions: Sessions,
+}
+
+/// The volunteers' HTTP routes': setup, shards, frozen weights, the global model, rollout videos.
+#[derive(Clone)]
+pub struct VolunteerState {
+    pub volunteers: Arc<Volunteers>,
+    pub sessions: Sessions,
+    pub model: watch::Receiver<Arc<PublishedModel>>,
+    /// Where uploads are filed.
+    pub run_dir: RunDir,
+    /// Told of every video stored.
+    pub console: ConsoleHub,
+}
+
+/// The operator console's API's.
+#[derive(Clone)]
+pub struct ConsoleState {
+    pub hub: ConsoleHub,
+    pub run_dir: RunDir,
+    /// Ends the event streams at shutdown.
+    pub cancel: CancellationToken,
+}
+
+/// The pages served to browsers (`www-dir`).
+#[derive(Clone)]
+pub struct WwwState {
+    pub dir: Arc<PathBuf>,
+}
+
+impl FromRef<AppState> for SocketState {
+    fn from_ref(state: &AppState) -> Self {
+        state.socket.clone()
+    }
+}
+
+impl FromRef<AppState> for VolunteerState {
+    fn from_ref(state: &AppState) -> Self {
+        state.volunteers.clone()
+    }
+}
+
+impl FromRef<AppState> for ConsoleState {
+    fn from_ref(state: &AppState) -> Self {
+        state.console.clone()
+    }
+}
+
+impl FromRef<AppState> for WwwState {
+    fn from_ref(state: &AppState) -> Self {
+        state.www.clone()
+    }
+}
+
+impl FromRef<AppState> for ConsoleHub {
+    fn from_ref(state: &AppState) -> Self {
+        state.console.hub.clone()
+    }
+}

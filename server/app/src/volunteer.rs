@@ -1,0 +1,164 @@
+//! What volunteers download and upload over HTTP, beside the WebSocket: the setup (`GET /api/volunteer`: which
+//! shard to train on, the policy configuration, where the frozen weights are), the shard and its manifest, the
+//! frozen weights (named by content hash so browsers cache them forever), the global model, and rollout videos
+//! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked).
+
+use std::sync::Arc;
+
+use axum::Json;
+use axum::Router;
+use axum::body::Bytes;
+use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::http::header::{AUTHORIZATION, CACHE_CONTROL, CONTENT_TYPE};
+use axum::http::{HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use fedvla_aggregator::registry::Volunteers;
+use fedvla_federation::{PROTOCOL_VERSION, VolunteerSetup, routes};
+use serde::Deserialize;
+
+use crate::console::ConsoleEvent;
+use crate::error::ServerError;
+use crate::state::{AppState, VolunteerState};
+
+/// Largest rollout video accepted.
+const MAX_VIDEO_BYTES: usize = 64 << 20;
+
+pub fn routes() -> Router<AppState> {
+    Router::new()
+        .route(routes::VOLUNTEER, get(get_setup))
+        .route(routes::FROZEN, get(get_frozen))
+        .route(routes::SHARD, get(get_shard))
+        .route(routes::SHARD_MANIFEST, get(get_shard_manifest))
+        .route(routes::MODEL, get(get_model))
+        .route(routes::ROLLOUT_VIDEO, post(post_video).layer(DefaultBodyLimit::max(MAX_VIDEO_BYTES)))
+}
+
+/// Who asks for a setup.
+#[derive(Deserialize)]
+struct SetupQuery {
+    name: Option<String>,
+    /// A shard the volunteer wants (`fedvla join --shard`); it becomes the name's shard.
+    shard: Option<usize>,
+}
+
+/// The setup of a volunteer (`?name=` keeps a returning one on its shard).
+async fn get_setup(
+    State(state): State<VolunteerState>,
+    Query(query): Query<SetupQuery>,
+) -> Result<Json<VolunteerSetup>, ServerError> {
+    let v = &state.volunteers;
+    let (binding, changed) =
+        v.assign(query.name.as_deref(), query.shard).map_err(|e| ServerError::BadRequest(e.to_string()))?;
+    if changed {
+        persist(v).await?;
+    }
+    let index = binding.map_or(0, |b| b.index) as u32;
+    let offer = v.offer();
+    Ok(Json(VolunteerSetup {
+        protocol_version: PROTOCOL_VERSION,
+        workload: offer.workload,
+        shard_index: index,
+        shard_count: offer.shards.len() as u32,
+        shard_url: routes::shard(index),
+        shard_manifest_url: routes::shard_manifest(index),
+        policy: offer.policy.clone(),
+        frozen_url: v.frozen_tag().map(routes::frozen),
+        frozen_bytes: offer.frozen.as_ref().map_or(0, |b| b.len() as u64),
+        rollout_task_tokens: offer.rollout_task_tokens.clone(),
+        rollout_task_mask: offer.rollout_task_mask.clone(),
+        model_version: state.model.borrow().version,
+    }))
+}
+
+/// Writes the registry off the async runtime.
+pub async fn persist(volunteers: &Arc<Volunteers>) -> Result<(), ServerError> {
+    let v = Arc::clone(volunteers);
+    match tokio::task::spawn_blocking(move || v.persist()).await {
+        Ok(result) => result.map_err(|e| ServerError::Storage(e.to_string())),
+        Err(e) => std::panic::resume_unwind(e.into_panic()),
+    }
+}
+
+async fn get_frozen(Path(tag): Path<String>, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+    let v = &state.volunteers;
+    match (&v.offer().frozen, v.frozen_tag()) {
+        (Some(bytes), Some(current)) if current == tag => Ok((
+            [(CONTENT_TYPE, "application/octet-stream"), (CACHE_CONTROL, "public, max-age=31536000, immutable")],
+            bytes.clone(),
+        )
+            .into_response()),
+        _ => Err(ServerError::NotFound(format!("frozen weights {tag}: this run serves {:?}", v.frozen_tag()))),
+    }
+}
+
+/// The shard file as stored; clients check it against the manifest's size and SHA-256.
+async fn get_shard(Path(index): Path<usize>, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+    let path = state.volunteers.shard_file(index)?;
+    let bytes = tokio::fs::read(path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
+}
+
+async fn get_shard_manifest(
+    Path(index): Path<usize>,
+    State(state): State<VolunteerState>,
+) -> Result<Response, ServerError> {
+    let path = fedvla_data::shard::sidecar_path(state.volunteers.shard_file(index)?);
+    let json = tokio::fs::read(&path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
+    Ok(([(CONTENT_TYPE, "application/json")], json).into_response())
+}
+
+/// The global trainable tensors of the current version.
+async fn get_model(Path(version): Path<u64>, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+    let model = state.model.borrow().clone();
+    if model.version != version {
+        return Err(ServerError::ModelVersion { requested: version, current: model.version });
+    }
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], model.safetensors.clone()).into_response())
+}
+
+/// Stores a rollout video as `evaluate/round_N/client_K/<file>`.
+async fn post_video(
+    Path((round, file)): Path<(u64, String)>,
+    State(state): State<VolunteerState>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, ServerError> {
+    let token = headers
+        .get(AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .ok_or_else(|| ServerError::Unauthorized("no `Authorization: Bearer <session>` header".into()))?;
+    let client_id = state
+        .sessions
+        .client(token)
+        .ok_or_else(|| ServerError::Unauthorized("unknown session (is the client still connected?)".into()))?;
+    let safe_name = !file.is_empty()
+        && file.len() <= 64
+        && file.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))
+        && !file.starts_with('.')
+        && (file.ends_with(".webm") || file.ends_with(".mp4"));
+    if !safe_name {
+        return Err(ServerError::BadRequest(format!("video name {file:?}: use [A-Za-z0-9_.-], ending .webm or .mp4")));
+    }
+    if body.is_empty() {
+        return Err(ServerError::BadRequest(format!("video {file} is empty")));
+    }
+    state.sessions.take_upload(client_id, round).map_err(|e| ServerError::Forbidden(e.to_string()))?;
+    let dir = state.run_dir.client_eval_dir(round, client_id);
+    let path = dir.join(&file);
+    let len = body.len();
+    let stored = {
+        let (dir, path) = (dir.clone(), path.clone());
+        tokio::task::spawn_blocking(move || {
+            std::fs::create_dir_all(&dir).and_then(|()| fedvla_fs::write_atomic(&path, &body))
+        })
+    };
+    match stored.await {
+        Ok(result) => result.map_err(|e| ServerError::Storage(format!("{}: {e}", path.display())))?,
+        Err(e) => std::panic::resume_unwind(e.into_panic()),
+    }
+    tracing::info!(client_id, round, file = %path.display(), bytes = len, "rollout video stored");
+    state.console.publish(ConsoleEvent::VideoStored { round, client_id, file });
+    Ok((StatusCode::CREATED, format!("stored {len} bytes")).into_response())
+}

@@ -1,0 +1,38 @@
+//! What is federated: the one place a model plugs into the server. A workload supplies the initial trainable
+//! tensors (whose names and shapes every update is checked against), the server's held-out evaluator, exporters
+//! for each round's global model, and what volunteers download; [`server_parts`] makes a server of it.
+
+use fedvla_aggregator::config::{RunConfig, StrategyKind};
+use fedvla_aggregator::parts::ServerParts;
+use fedvla_aggregator::registry::VolunteerOffer;
+use fedvla_aggregator::run_dir::{ModelExporter, RunDir};
+use fedvla_federation::{BoxError, Evaluator, FedAvg, NamedTensors, Strategy};
+
+pub trait Workload {
+    fn initial_model(&self) -> Result<NamedTensors, BoxError>;
+
+    fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError>;
+
+    /// Written into `global_model/round_N/` after `trainable.safetensors` (e.g. a LeRobot policy directory).
+    fn exporters(&self) -> Vec<Box<dyn ModelExporter>>;
+
+    /// What the server hands volunteers over HTTP: shards, policy configuration, frozen weights.
+    fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError>;
+}
+
+/// The server side of `workload` under `config`: its initial model, evaluator, exporters and volunteer offer, and
+/// the configured strategy.
+pub fn server_parts(workload: &impl Workload, config: RunConfig, run_dir: RunDir) -> Result<ServerParts, BoxError> {
+    let strategy: Box<dyn Strategy> = match config.strategy {
+        StrategyKind::Fedavg => Box::new(FedAvg),
+    };
+    Ok(ServerParts {
+        initial: workload.initial_model()?,
+        evaluator: workload.evaluator()?,
+        exporters: workload.exporters(),
+        volunteer: workload.volunteer_offer()?,
+        strategy,
+        config,
+        run_dir,
+    })
+}

@@ -227,6 +227,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             local_steps: steps_per_round,
             batch_size: config.batch_size,
             lr: config.lr,
+            lr_schedule: config.lr_schedule(round, u64::from(steps_per_round)),
             seed: config.seed ^ round.wrapping_mul(0x9e37_79b9_7f4a_7c15),
             strategy: StrategyParams { name: "centralized".into(), proximal_mu: 0.0 },
             deadline_ms: config.round_deadline_ms,

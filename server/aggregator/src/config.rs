@@ -20,6 +20,15 @@ pub enum ConfigError {
     Invalid(String),
 }
 
+/// How the learning rate moves over a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LrScheduleKind {
+    Constant,
+    /// LeRobot's: linear warmup, then cosine decay to `lr-final-fraction` of `lr`, over the run's steps.
+    Cosine,
+}
+
 /// Aggregation strategy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -52,6 +61,9 @@ pub struct RunConfig {
     pub local_steps: u32,
     pub batch_size: u32,
     pub lr: f64,
+    pub lr_schedule: LrScheduleKind,
+    pub lr_warmup_fraction: f64,
+    pub lr_final_fraction: f64,
     pub seed: u64,
     pub strategy: StrategyKind,
     pub workload: WorkloadKind,
@@ -142,6 +154,18 @@ impl RunConfig {
         Ok(cfg)
     }
 
+    /// The learning rate schedule of a run whose trainer takes `steps_per_round` steps a round, as of round
+    /// `round`; `None` when the rate is constant.
+    pub fn lr_schedule(&self, round: u64, steps_per_round: u64) -> Option<fedvla_federation::LrSchedule> {
+        let total = self.num_server_rounds * steps_per_round;
+        (self.lr_schedule == LrScheduleKind::Cosine).then(|| fedvla_federation::LrSchedule {
+            warmup_steps: (total as f64 * self.lr_warmup_fraction) as u64,
+            total_steps: total,
+            final_lr: self.lr * self.lr_final_fraction,
+            first_step: round.saturating_sub(1) * steps_per_round,
+        })
+    }
+
     /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
     pub fn sampled_clients(&self, connected: usize) -> usize {
         ((self.fraction_fit * connected as f64).ceil() as usize).max(self.min_fit).min(connected)
@@ -166,6 +190,12 @@ impl RunConfig {
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
             return fail(format!("lr must be positive, got {}", self.lr));
+        }
+        if !(0.0..1.0).contains(&self.lr_warmup_fraction) || !(0.0..=1.0).contains(&self.lr_final_fraction) {
+            return fail(format!(
+                "lr-warmup-fraction must be in [0, 1) and lr-final-fraction in [0, 1], got {} and {}",
+                self.lr_warmup_fraction, self.lr_final_fraction
+            ));
         }
         if self.eval_every == 0 {
             return fail("eval-every must be at least 1".into());

@@ -12,7 +12,11 @@ use fedvla_federation::{EvalMetrics, RolloutEpisode};
 use serde::{Deserialize, Serialize};
 
 use crate::control::Settings;
-use crate::run_dir::METRICS_FILE;
+
+/// A run's metrics, one [`MetricsLine`] a line.
+pub const METRICS_FILE: &str = "metrics.jsonl";
+/// A model's sim rollouts ([`RolloutResults`]).
+pub const RESULTS_FILE: &str = "results.json";
 
 /// One round of a run: a federation's aggregated (or skipped) round, or the centralized baseline after the
 /// samples of one federated round. Round 0 is the initial model's evaluation.

@@ -10,10 +10,10 @@ use std::path::{Path, PathBuf};
 use fedvla_federation::{BoxError, NamedTensors, TensorError};
 
 use crate::config::{ConfigError, RunConfig};
+pub use crate::records::{METRICS_FILE, RESULTS_FILE};
 use crate::records::{MetricsLine, RolloutResults, SimFigures};
 
 pub const CONFIG_FILE: &str = "config.toml";
-pub const METRICS_FILE: &str = "metrics.jsonl";
 pub const MODELS_DIR: &str = "global_model";
 /// In a round's model directory: the LeRobot policy directory and the sim rollouts of the global model.
 pub const POLICY_DIR: &str = "policy";
@@ -25,8 +25,6 @@ pub const EVALUATE_DIR: &str = "evaluate";
 pub const TRAINABLE_FILE: &str = "trainable.safetensors";
 /// What the strategy carries into the next round (server moments, control variates), when it carries anything.
 pub const STRATEGY_FILE: &str = "strategy.safetensors";
-/// `results.json`: a model's sim rollouts ([`RolloutResults`]).
-pub const RESULTS_FILE: &str = "results.json";
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunDirError {

@@ -16,7 +16,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let config = ExperimentConfig::load(&args.config)?;
-    let log = super::init_tracing(None, LevelFilter::WARN);
+    let log = super::support::init_tracing(None, LevelFilter::WARN);
     println!(
         "experiment {}: {} arms x {} seeds into {}",
         config.name,

@@ -23,26 +23,29 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    super::init_tracing(None, LevelFilter::INFO);
+    super::support::init_tracing(None, LevelFilter::INFO);
     let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_aggregator::sessions::random_token()[..6]));
-    let result =
-        super::runtime()?.block_on(native_client::volunteer(&args.url, &name, args.shard, args.auth_token, |event| {
-            match event {
-                ClientEvent::Trained { round, examples, train_loss } => {
-                    tracing::info!(round, examples, train_loss, "trained");
-                }
-                ClientEvent::Refused { code, message } => {
-                    tracing::warn!(code = code.as_str(), %message, "refused");
-                }
-                other => tracing::info!(?other),
+    let result = super::support::runtime()?.block_on(native_client::volunteer(
+        &args.url,
+        &name,
+        args.shard,
+        args.auth_token,
+        |event| match event {
+            ClientEvent::Trained { round, examples, train_loss } => {
+                tracing::info!(round, examples, train_loss, "trained");
             }
-        }));
+            ClientEvent::Refused { code, message } => {
+                tracing::warn!(code = code.as_str(), %message, "refused");
+            }
+            other => tracing::info!(?other),
+        },
+    ));
     let summary = match result {
         Err(e) if matches!(e.downcast_ref(), Some(ClientError::Refused { code: ErrorCode::ShuttingDown, .. })) => {
             tracing::info!("the server shut down before the run finished");
             return Ok(());
         }
-        other => other.map_err(super::boxed)?,
+        other => other.map_err(super::support::boxed)?,
     };
     tracing::info!(
         rounds = summary.rounds_trained,

@@ -9,7 +9,7 @@ use fedvla_app::server;
 use tokio::net::TcpListener;
 use tracing_subscriber::filter::LevelFilter;
 
-use super::ConfigArgs;
+use super::support::ConfigArgs;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -35,16 +35,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             (config, run_dir)
         }
     };
-    let _log = super::init_tracing(Some(run_dir.log_file()?), LevelFilter::INFO);
+    let _log = super::support::init_tracing(Some(run_dir.log_file()?), LevelFilter::INFO);
     tracing::info!(run_dir = %run_dir.path().display(), "run directory");
     let listen = config.listen.clone();
     let dir = run_dir.path().to_owned();
-    super::runtime()?.block_on(async move {
+    super::support::runtime()?.block_on(async move {
         let listener = TcpListener::bind(&listen).await.with_context(|| format!("binding {listen}"))?;
-        let handle = server::start(super::workload_parts(config, run_dir)?, listener)?;
+        let handle = server::start(super::support::workload_parts(config, run_dir)?, listener)?;
         let cancel = handle.cancel_token();
         tokio::spawn(async move {
-            super::shutdown_signal().await;
+            super::support::shutdown_signal().await;
             tracing::info!("shutting down");
             cancel.cancel();
         });

@@ -7,7 +7,7 @@ use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::runs::{self, Bars};
 use tracing_subscriber::filter::LevelFilter;
 
-use super::ConfigArgs;
+use super::support::ConfigArgs;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -18,7 +18,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let config = args.config.load()?;
     let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
-    let _log = super::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
+    let _log = super::support::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
     println!("run directory: {}", run_dir.path().display());
     let clients = config.sampled_clients(config.num_clients);
     println!(
@@ -27,5 +27,5 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     runs::centralized(config, run_dir.clone(), &Bars::terminal())?;
     println!("metrics in {}", run_dir.path().join(METRICS_FILE).display());
-    super::simulate::print_headline(run_dir.path())
+    super::support::print_headline(run_dir.path())
 }

@@ -8,9 +8,9 @@ use std::path::Path;
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
+use super::config::{ExperimentConfig, FINAL_FILE, Mode, read_final};
 use super::plot::{Curve, plot_curves};
 use super::stats::Interval;
-use super::{ExperimentConfig, Mode, read_final};
 use fedvla_aggregator::records::read_metrics;
 
 pub const REPORT_JSON: &str = "report.json";
@@ -117,7 +117,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         let runs = config
             .seeds
             .iter()
-            .filter(|&&seed| config.run_path(arm, seed).join(super::FINAL_FILE).exists())
+            .filter(|&&seed| config.run_path(arm, seed).join(FINAL_FILE).exists())
             .map(|&seed| run_figures(&config.run_path(arm, seed), seed))
             .collect::<anyhow::Result<Vec<_>>>()?;
         figures.insert(&arm.name, runs);

@@ -280,6 +280,7 @@ mod tests {
             local_steps: 200,
             batch_size: 16,
             lr: 0.05,
+            lr_schedule: None,
             seed,
             strategy: StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
             deadline_ms: 1000,

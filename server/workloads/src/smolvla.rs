@@ -297,7 +297,9 @@ impl ModelExporter for SimRollouts {
         config: &RunConfig,
         dir: &Path,
     ) -> Result<Option<SimFigures>, BoxError> {
-        if config.rollout_episodes == 0 {
+        // Rolled out where the round is evaluated: every eval-every rounds and the last.
+        let evaluated = round.is_multiple_of(config.eval_every) || round == config.num_server_rounds;
+        if config.rollout_episodes == 0 || !evaluated {
             return Ok(None);
         }
         let mut weights = (*self.frozen).clone();

@@ -20,8 +20,8 @@ pub use codec::{Reassembler, UpdateLimits};
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator};
 pub use protocol::{
-    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
-    ServerMessage, StrategyParams, VolunteerSetup, WorkloadKind, routes,
+    Capabilities, ClientMessage, ErrorCode, LrSchedule, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics,
+    RoundTask, ServerMessage, StrategyParams, VolunteerSetup, WorkloadKind, routes,
 };
 pub use seed::{fnv1a, mix};
 pub use strategy::{Aggregation, FedAvg, Step, Strategy, WeightedMean, aggregate};

@@ -161,7 +161,11 @@ pub struct RoundTask {
     pub model_version: u64,
     pub local_steps: u32,
     pub batch_size: u32,
+    /// The learning rate, or its peak when `lr_schedule` is given.
     pub lr: f64,
+    /// The learning rate over the whole run's local steps, when it is not constant.
+    #[serde(default)]
+    pub lr_schedule: Option<LrSchedule>,
     /// Seed for this client's local shuffling in this round.
     pub seed: u64,
     pub strategy: StrategyParams,
@@ -171,6 +175,17 @@ pub struct RoundTask {
     pub eval_request: bool,
     /// Sim rollouts of the task's starting model to report with [`ClientMessage::RolloutResult`].
     pub rollout: Option<RolloutRequest>,
+}
+
+/// LeRobot's cosine decay with linear warmup, over a client's steps of the whole run: this round's local steps
+/// are steps `first_step..first_step + local_steps` of `total_steps`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LrSchedule {
+    pub warmup_steps: u64,
+    pub total_steps: u64,
+    /// The learning rate the decay ends at.
+    pub final_lr: f64,
+    pub first_step: u64,
 }
 
 /// What a volunteer downloads before it joins (`GET /api/volunteer`): its shard, the policy and the frozen

@@ -8,7 +8,7 @@ use fedvla_federation::{
     RoundTask, TrainOutput,
 };
 use fedvla_policy::weights::ParamStore;
-use fedvla_policy::{SmolVla, SmolVlaConfig, Trainer, WeightMap};
+use fedvla_policy::{CosineWarmup, SmolVla, SmolVlaConfig, Trainer, WeightMap};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -107,7 +107,7 @@ impl SmolVlaTrainer {
                 cursor += 1;
             }
             let batch = self.examples.batch(&picked, chunk)?;
-            let loss = self.trainer.train_step_async(&batch, task.lr).await?.loss;
+            let loss = self.trainer.train_step_async(&batch, lr_at(task, step)).await?.loss;
             loss_sum += loss as f64;
             after_step(StepProgress { step: step + 1, steps: task.local_steps, loss }).await;
         }
@@ -153,6 +153,21 @@ impl LocalTrainer for SmolVlaTrainer {
                 Ok(RolloutOutput { episode: rollout_episode(episode, &run), video: None })
             })
             .collect()
+    }
+}
+
+/// The learning rate of local step `step` (from 0) of `task`: constant, or on its schedule (LeRobot's cosine with
+/// warmup) over the client's steps of the whole run.
+pub fn lr_at(task: &RoundTask, step: u32) -> f64 {
+    match task.lr_schedule {
+        None => task.lr,
+        Some(s) => CosineWarmup {
+            peak_lr: task.lr,
+            decay_lr: s.final_lr,
+            warmup_steps: s.warmup_steps as usize,
+            decay_steps: s.total_steps.max(1) as usize,
+        }
+        .lr_at((s.first_step + u64::from(step)) as usize),
     }
 }
 

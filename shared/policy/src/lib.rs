@@ -10,7 +10,9 @@
 pub mod batch;
 pub mod config;
 pub mod error;
+mod keys;
 pub mod layers;
+mod lerobot_config;
 pub mod normalize;
 pub mod parity;
 pub mod policy_dir;

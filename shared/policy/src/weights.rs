@@ -2,8 +2,9 @@
 //! on load), the check of a checkpoint against the configuration's tensor list, seeded random
 //! initialisation, and the on-device store the model's layers are built from.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
+use std::sync::{Arc, Mutex};
 
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::SeedableRng;
@@ -161,6 +162,8 @@ pub fn init_random(specs: &[ParamSpec], seed: u64) -> WeightMap {
 #[derive(Debug, Clone)]
 pub struct ParamStore {
     tensors: BTreeMap<String, (Tensor<1>, Vec<usize>)>,
+    /// Every name asked for, when recording (to check the loaders against the key list).
+    reads: Option<Arc<Mutex<BTreeSet<String>>>>,
 }
 
 impl ParamStore {
@@ -178,23 +181,32 @@ impl ParamStore {
                 (k.clone(), (flat, t.shape.clone()))
             })
             .collect();
-        Self { tensors }
+        Self { tensors, reads: None }
     }
 
     pub fn from_flat(tensors: BTreeMap<String, (Tensor<1>, Vec<usize>)>) -> Self {
-        Self { tensors }
+        Self { tensors, reads: None }
+    }
+
+    /// This store, recording every name the layers ask it for into the returned set.
+    pub fn recording(&self) -> (Self, Arc<Mutex<BTreeSet<String>>>) {
+        let reads = Arc::new(Mutex::new(BTreeSet::new()));
+        (Self { tensors: self.tensors.clone(), reads: Some(Arc::clone(&reads)) }, reads)
     }
 
     /// This store with `other`'s tensors added, replacing any of the same name.
     pub fn overlaid(&self, other: &ParamStore) -> Self {
         let mut tensors = self.tensors.clone();
         tensors.extend(other.tensors.iter().map(|(k, v)| (k.clone(), v.clone())));
-        Self { tensors }
+        Self { tensors, reads: self.reads.clone() }
     }
 
     /// The tensor `name` in its checkpoint shape. Panics on an unknown name: every name asked for
     /// comes from `SmolVlaConfig::param_specs`, which the loader has already checked against.
     pub fn get<const D: usize>(&self, name: &str) -> Tensor<D> {
+        if let Some(reads) = &self.reads {
+            reads.lock().expect("reads lock").insert(name.to_owned());
+        }
         let (flat, shape) = self.tensors.get(name).unwrap_or_else(|| panic!("parameter {name} not in store"));
         let dims: [usize; D] =
             shape.as_slice().try_into().unwrap_or_else(|_| panic!("parameter {name} has rank {}", shape.len()));

@@ -8,7 +8,7 @@ use fedvla_federation::{ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, R
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
-use super::{ClientEntry, CoordinatorError, Event, Running, UpdateReceived};
+use super::state::{ClientEntry, CoordinatorError, Event, Running, UpdateReceived};
 use crate::events::{ClientState, RunEvent};
 use crate::records::{ClientRecord, RolloutResults};
 
@@ -106,6 +106,7 @@ impl Running {
                 local_steps: cfg.local_steps,
                 batch_size: cfg.batch_size,
                 lr: cfg.lr,
+                lr_schedule: cfg.lr_schedule(round, u64::from(cfg.local_steps)),
                 seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
                 strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
                 deadline_ms: cfg.round_deadline_ms,

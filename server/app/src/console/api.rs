@@ -24,8 +24,9 @@ use serde_json::{Value, json};
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::io::{ReaderStream, SyncIoBridge};
 
+use super::events::ConsoleEvent;
 use super::gallery::{RoundGallery, checkpoint_rounds, gallery};
-use super::{ConsoleEvent, ConsoleHub, LiveSnapshot};
+use super::hub::{ConsoleHub, LiveSnapshot};
 use crate::state::{AppState, ConsoleState};
 use crate::static_files::{FileError, file_response, relative_path};
 
@@ -88,9 +89,10 @@ async fn require_operator(
 ) -> Response {
     let bearer =
         request.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
-    match console.authorize(bearer.or(query.token.as_deref())) {
-        Ok(()) => next.run(request).await,
-        Err(e) => e.into_response(),
+    match bearer.or(query.token.as_deref()) {
+        None => ConsoleError::MissingToken.into_response(),
+        Some(token) if console.is_operator(token) => next.run(request).await,
+        Some(_) => ConsoleError::WrongToken.into_response(),
     }
 }
 

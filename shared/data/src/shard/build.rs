@@ -7,7 +7,7 @@ use std::path::Path;
 use safetensors::tensor::{Dtype, View};
 use sha2::{Digest, Sha256};
 
-use super::{
+use super::format::{
     MANIFEST_KEY, SHARD_FORMAT, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, content_hash, hex, sidecar_path,
 };
 use crate::error::{DataError, Result};

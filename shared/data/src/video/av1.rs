@@ -4,8 +4,9 @@ use std::path::Path;
 
 use dav1d::{Decoder, PlanarImageComponent, Settings};
 
-use super::{RgbImage, color};
+use super::color;
 use crate::error::{DataError, Result};
+use crate::image::RgbImage;
 
 pub struct Av1Decoder {
     decoder: Decoder,

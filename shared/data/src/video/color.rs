@@ -3,7 +3,7 @@
 //! BT.601 limited range is what FFmpeg (and so PyAV inside LeRobot) assumes for untagged SD-sized
 //! yuv420p video, and what the H.264 encoder signals in its VUI, so both sides agree on colours.
 
-use super::RgbImage;
+use crate::image::RgbImage;
 
 /// Planar I420: the Y plane (w*h), then U and V planes ((w/2)*(h/2) each).
 pub fn rgb_to_i420(image: &RgbImage) -> Vec<u8> {

@@ -9,9 +9,10 @@ use openh264::encoder::{
 };
 use openh264::formats::{YUVBuffer, YUVSource};
 
+use super::color;
 use super::mp4::AvcParameterSets;
-use super::{RgbImage, color};
 use crate::error::{DataError, Result};
+use crate::image::RgbImage;
 use std::path::Path;
 
 /// One encoded frame as an mp4 sample.

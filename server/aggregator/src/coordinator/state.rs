@@ -1,0 +1,161 @@
+//! What the coordinator is made of and what it exchanges: the events connections send it, the updates it
+//! collects, the status and model it publishes, and the running state its round loop ([`super`]), a round in
+//! flight ([`super::round`]) and closing a round ([`super::close`]) work on.
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex};
+
+use bytes::Bytes;
+use fedvla_federation::{
+    BoxError, Capabilities, ErrorCode, Evaluator, NamedTensors, RolloutEpisode, RoundMetrics, ServerMessage, Strategy,
+};
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+use crate::config::RunConfig;
+use crate::control::Controls;
+use crate::events::RunObserver;
+use crate::registry::ShardBinding;
+use crate::run_dir::{ModelExporter, RunDir, RunDirError};
+use crate::sessions::Sessions;
+
+/// What connections tell the coordinator.
+#[derive(Debug)]
+pub enum Event {
+    Joined {
+        client_id: u64,
+        name: String,
+        capabilities: Capabilities,
+        /// The shard the client trains on; `None` when the workload offers none (its updates weigh equally).
+        shard: Option<ShardBinding>,
+        outbox: mpsc::UnboundedSender<ServerMessage>,
+    },
+    Left {
+        client_id: u64,
+    },
+    Update {
+        client_id: u64,
+        update: Box<UpdateReceived>,
+    },
+    Metrics {
+        client_id: u64,
+        metrics: RoundMetrics,
+    },
+    EvalResult {
+        client_id: u64,
+        round: u64,
+        examples: u64,
+        loss: f64,
+    },
+    /// Sim rollouts of the model version a task started from (videos already stored by HTTP).
+    RolloutResult {
+        client_id: u64,
+        round: u64,
+        model_version: u64,
+        episodes: Vec<RolloutEpisode>,
+    },
+    /// A client announced an update (`UpdateHeader`); its frames are on the way.
+    Uploading {
+        client_id: u64,
+    },
+    /// Input refused by a connection (already answered with an `Error`); `None` before the client joined.
+    Rejected {
+        client_id: Option<u64>,
+        code: ErrorCode,
+    },
+}
+
+/// A complete, validated update.
+#[derive(Debug)]
+pub struct UpdateReceived {
+    pub round: u64,
+    pub tensors: NamedTensors,
+    /// What the update header said; the update weighs what the client's shard holds.
+    pub claimed_examples: u64,
+    pub train_loss: f64,
+    /// Bytes of the update's binary frames, headers included.
+    pub bytes: u64,
+}
+
+/// The global model as served: its version and safetensors bytes.
+#[derive(Debug, Clone)]
+pub struct PublishedModel {
+    pub version: u64,
+    pub safetensors: Bytes,
+}
+
+/// Where the run stands, published after every change.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RunStatus {
+    pub completed_rounds: u64,
+    pub connected: usize,
+    /// Refused client inputs by error code, since the server started.
+    pub rejections: BTreeMap<ErrorCode, u64>,
+    /// Round attempts that closed with too few updates.
+    pub retried_rounds: u64,
+    /// Rounds whose every aggregate failed (or whose evaluation did): the global model stayed as it was.
+    pub skipped_rounds: u64,
+    /// Updates whose example count claim differed from their shard's training examples (the shard's count was
+    /// used).
+    pub corrected_claims: u64,
+    pub finished: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CoordinatorError {
+    #[error("cancelled")]
+    Cancelled,
+    #[error(transparent)]
+    RunDir(#[from] RunDirError),
+    #[error("evaluation failed: {0}")]
+    Evaluate(BoxError),
+}
+
+/// Everything the coordinator owns.
+pub struct Coordinator {
+    pub config: RunConfig,
+    pub events: mpsc::Receiver<Event>,
+    pub cancel: CancellationToken,
+    /// Locked only by the coordinator's own blocking jobs (aggregation runs off the async runtime).
+    pub strategy: Arc<Mutex<Box<dyn Strategy>>>,
+    pub evaluator: Arc<Mutex<Box<dyn Evaluator + Send>>>,
+    pub exporters: Arc<Vec<Box<dyn ModelExporter>>>,
+    pub run_dir: RunDir,
+    pub global: Arc<NamedTensors>,
+    /// The last completed round; `None` for a fresh run (round 0, the initial evaluation, is still to do).
+    pub completed: Option<u64>,
+    pub model_tx: watch::Sender<Arc<PublishedModel>>,
+    pub status_tx: watch::Sender<RunStatus>,
+    pub controls: Controls,
+    pub observer: Arc<dyn RunObserver>,
+    /// Upload rights of the clients asked for rollout videos.
+    pub sessions: Sessions,
+}
+
+pub(super) struct ClientEntry {
+    pub(super) name: String,
+    pub(super) shard: Option<ShardBinding>,
+    pub(super) outbox: mpsc::UnboundedSender<ServerMessage>,
+}
+
+impl Coordinator {
+    /// The model version clients train from: the last completed round.
+    pub(super) fn global_version(&self) -> u64 {
+        self.completed.unwrap_or(0)
+    }
+}
+
+pub(super) struct Running {
+    pub(super) c: Coordinator,
+    pub(super) clients: BTreeMap<u64, ClientEntry>,
+    /// Refusals since the last metrics line.
+    pub(super) round_rejections: BTreeMap<ErrorCode, u64>,
+}
+
+/// Runs `f` on tokio's blocking pool (aggregation, evaluation, file writes), passing its panic on.
+pub(super) async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+    match tokio::task::spawn_blocking(f).await {
+        Ok(out) => out,
+        Err(e) => std::panic::resume_unwind(e.into_panic()),
+    }
+}

@@ -32,7 +32,8 @@ fn screenshot_dir() -> PathBuf {
 
 async fn start_server(tmp: &Path, overrides: &str) -> (ServerHandle, RunDir) {
     let data = tmp.join("so100");
-    generate_dataset(&data, &GenDataOptions { episodes: 6, seed: 0, image_size: 32 }, |_| {}).unwrap();
+    generate_dataset(&data, &GenDataOptions { episodes: 6, seed: 0, image_size: 32, ..Default::default() }, |_| {})
+        .unwrap();
     let cfg = RunConfig::default()
         .with_overrides(&format!(
             "workload=smolvla model-size=tiny dataset={} output-dir={} num-clients=2 min-clients=2 min-fit=2 \

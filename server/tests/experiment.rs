@@ -41,7 +41,8 @@ fn numbers(report: &Report) -> serde_json::Value {
 fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
     let tmp = tempfile::tempdir().unwrap();
     let dataset = tmp.path().join("data");
-    generate_dataset(&dataset, &GenDataOptions { episodes: 6, seed: 0, image_size: 32 }, |_| {}).unwrap();
+    generate_dataset(&dataset, &GenDataOptions { episodes: 6, seed: 0, image_size: 32, ..Default::default() }, |_| {})
+        .unwrap();
     let first = config(&tmp.path().join("a"), &dataset);
     let dir = experiment::run(&first, &|_| Ok(())).unwrap();
     let report: Report = serde_json::from_slice(&std::fs::read(dir.join(REPORT_JSON)).unwrap()).unwrap();

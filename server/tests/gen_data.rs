@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use fedvla_data::{FeatureStats, LeRobotDataset, RgbImage};
 use fedvla_sim::{Camera, FPS, JOINT_COUNT, Scene, TASK, render, run_expert_episode};
-use fedvla_workloads::datagen::{GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, generate_dataset};
+use fedvla_workloads::datagen::{GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, generate_dataset, recorded_seeds};
 
 const SIZE: u32 = 64;
 
@@ -14,7 +14,7 @@ const SIZE: u32 = 64;
 fn expert_episodes_read_back_exactly() {
     let dir = tempfile::tempdir().expect("temp dir");
     let out = dir.path().join("so100");
-    let opts = GenDataOptions { episodes: 2, seed: 0, image_size: SIZE };
+    let opts = GenDataOptions { episodes: 2, seed: 0, image_size: SIZE, ..Default::default() };
     let mut events = Vec::new();
     let summary = generate_dataset(&out, &opts, |e| events.push(e)).expect("generate");
 
@@ -32,7 +32,7 @@ fn expert_episodes_read_back_exactly() {
     assert_eq!(dataset.camera_keys(), Camera::ALL.map(|c| format!("observation.images.{}", c.name())));
 
     for (episode, &seed) in dataset.episodes().iter().zip(&summary.seeds) {
-        let expert = run_expert_episode(seed, MAX_EPISODE_FRAMES);
+        let expert = run_expert_episode(seed, MAX_EPISODE_FRAMES, fedvla_sim::ActionNoise::NONE);
         assert!(expert.success, "seed {seed} was recorded although the expert fails on it");
         assert_eq!(episode.length, expert.states.len(), "seed {seed}");
         assert_eq!(episode.tasks, [TASK.to_string()]);
@@ -97,7 +97,7 @@ fn expert_episodes_read_back_exactly() {
 #[test]
 fn same_options_write_the_same_files() {
     let dir = tempfile::tempdir().expect("temp dir");
-    let opts = GenDataOptions { episodes: 1, seed: 5, image_size: SIZE };
+    let opts = GenDataOptions { episodes: 1, seed: 5, image_size: SIZE, ..Default::default() };
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     generate_dataset(&a, &opts, |_| {}).expect("first");
     generate_dataset(&b, &opts, |_| {}).expect("second");
@@ -110,13 +110,40 @@ fn same_options_write_the_same_files() {
 }
 
 #[test]
+fn recovery_demonstrations_record_the_expert_goals_from_perturbed_states() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("noisy");
+    let opts = GenDataOptions { episodes: 2, seed: 0, image_size: SIZE, action_noise_degrees: 2.0 };
+    let summary = generate_dataset(&out, &opts, |_| {}).expect("generate");
+    let recorded = recorded_seeds(&out).expect("seeds file").expect("written");
+    assert_eq!((recorded.seeds, recorded.action_noise_degrees), (summary.seeds.clone(), 2.0));
+
+    let dataset = LeRobotDataset::open(&out).expect("open");
+    let noise = fedvla_sim::ActionNoise::degrees(2.0);
+    for (episode, &seed) in dataset.episodes().iter().zip(&summary.seeds) {
+        let perturbed = run_expert_episode(seed, MAX_EPISODE_FRAMES, noise);
+        let clean = run_expert_episode(seed, MAX_EPISODE_FRAMES, fedvla_sim::ActionNoise::NONE);
+        assert!(perturbed.states != clean.states, "seed {seed}: the perturbation changed nothing");
+        assert_eq!(episode.length, perturbed.states.len(), "seed {seed}");
+        for (k, row) in (episode.dataset_from_index..episode.dataset_to_index).enumerate() {
+            assert_eq!(
+                dataset.vector("observation.state", row),
+                Some(&perturbed.states[k][..]),
+                "seed {seed} frame {k}"
+            );
+            assert_eq!(dataset.vector("action", row), Some(&perturbed.actions[k][..]), "seed {seed} frame {k}");
+        }
+    }
+}
+
+#[test]
 fn odd_image_sizes_and_existing_datasets_are_refused() {
     let dir = tempfile::tempdir().expect("temp dir");
-    let odd = GenDataOptions { episodes: 1, seed: 0, image_size: 63 };
+    let odd = GenDataOptions { episodes: 1, seed: 0, image_size: 63, ..Default::default() };
     let err = generate_dataset(dir.path(), &odd, |_| {}).expect_err("odd size");
     assert!(err.to_string().contains("even"), "{err}");
 
-    let opts = GenDataOptions { episodes: 1, seed: 0, image_size: SIZE };
+    let opts = GenDataOptions { episodes: 1, seed: 0, image_size: SIZE, ..Default::default() };
     generate_dataset(dir.path(), &opts, |_| {}).expect("first dataset");
     let err = generate_dataset(dir.path(), &opts, |_| {}).expect_err("dataset exists");
     assert!(format!("{err:#}").contains("refusing to overwrite"), "{err:#}");

@@ -52,7 +52,8 @@ impl LocalTrainer for Recording {
 
 fn dataset(dir: &Path) -> std::path::PathBuf {
     let root = dir.join("so100");
-    generate_dataset(&root, &GenDataOptions { episodes: 7, seed: 0, image_size: 32 }, |_| {}).unwrap();
+    generate_dataset(&root, &GenDataOptions { episodes: 7, seed: 0, image_size: 32, ..Default::default() }, |_| {})
+        .unwrap();
     root
 }
 

@@ -69,6 +69,7 @@ pub struct RunConfig {
     pub workload: WorkloadKind,
     pub dataset: String,
     pub dataset_episodes: usize,
+    pub dataset_action_noise: f64,
     pub num_clients: usize,
     pub partitioning: Partitioning,
     pub model_size: String,
@@ -196,6 +197,9 @@ impl RunConfig {
                 "lr-warmup-fraction must be in [0, 1) and lr-final-fraction in [0, 1], got {} and {}",
                 self.lr_warmup_fraction, self.lr_final_fraction
             ));
+        }
+        if !(self.dataset_action_noise.is_finite() && (0.0..=20.0).contains(&self.dataset_action_noise)) {
+            return fail(format!("dataset-action-noise must be in [0, 20] degrees, got {}", self.dataset_action_noise));
         }
         if self.eval_every == 0 {
             return fail("eval-every must be at least 1".into());

@@ -20,10 +20,24 @@ pub struct Args {
     /// Width and height of both cameras, in pixels (even).
     #[arg(long, default_value_t = GenDataOptions::default().image_size)]
     image_size: u32,
+    /// Record recoveries: the arm executes the expert's goals perturbed by a wandering offset of this
+    /// standard deviation (degrees), while the dataset records the expert's goals (0: none).
+    #[arg(long, default_value_t = GenDataOptions::default().action_noise_degrees)]
+    action_noise: f32,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let opts = GenDataOptions { episodes: args.episodes, seed: args.seed, image_size: args.image_size };
+    anyhow::ensure!(
+        args.action_noise.is_finite() && args.action_noise >= 0.0,
+        "--action-noise must be a non-negative number of degrees, got {}",
+        args.action_noise
+    );
+    let opts = GenDataOptions {
+        episodes: args.episodes,
+        seed: args.seed,
+        image_size: args.image_size,
+        action_noise_degrees: args.action_noise,
+    };
     let bar = ProgressBar::new(args.episodes as u64);
     bar.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} episodes, {msg} ({elapsed}, eta {eta})")?);
     let summary = generate_dataset(&args.out, &opts, |event| match event {

@@ -12,12 +12,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
-use fedvla_sim::{Camera, ExpertEnd, FPS, TASK, drive_expert, render};
+use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, TASK, drive_expert, render};
 
 /// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
 pub const MAX_EPISODE_FRAMES: u32 = 400;
 
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct GenDataOptions {
     /// Successful episodes to record.
     pub episodes: usize,
@@ -25,11 +25,14 @@ pub struct GenDataOptions {
     pub seed: u64,
     /// Width and height of both cameras (even, for yuv420p video).
     pub image_size: u32,
+    /// Standard deviation, degrees, of the perturbation the arm executes the expert's goals with
+    /// (recovery demonstrations, see `fedvla_sim::perturbation`); 0 records the expert as it is.
+    pub action_noise_degrees: f32,
 }
 
 impl Default for GenDataOptions {
     fn default() -> Self {
-        Self { episodes: 50, seed: 0, image_size: 256 }
+        Self { episodes: 50, seed: 0, image_size: 256, action_noise_degrees: 0.0 }
     }
 }
 
@@ -73,6 +76,9 @@ pub struct RecordedSeeds {
     pub seeds: Vec<u64>,
     /// Seeds the expert failed on (no episode).
     pub skipped: Vec<u64>,
+    /// The perturbation the episodes were executed with, degrees (0: none).
+    #[serde(default)]
+    pub action_noise_degrees: f32,
 }
 
 /// The seeds a dataset was recorded from, when `fedvla gen-data` (or the embedded default) recorded it.
@@ -144,9 +150,13 @@ pub fn generate_dataset(
         let (written, seeds) = written?;
         anyhow::Ok((written, seeds, skipped))
     })?;
-    let record = RecordedSeeds { seeds: seeds.clone(), skipped: skipped_seeds.clone() };
+    let record = RecordedSeeds {
+        seeds: seeds.clone(),
+        skipped: skipped_seeds.clone(),
+        action_noise_degrees: opts.action_noise_degrees,
+    };
     let path = written.root.join(SEEDS_FILE);
-    std::fs::write(&path, serde_json::to_vec_pretty(&record).expect("seeds serialize"))
+    fedvla_fs::write_atomic(&path, &serde_json::to_vec_pretty(&record).expect("seeds serialize"))
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(GenSummary {
         root: written.root,
@@ -170,7 +180,7 @@ fn record_episodes(
     let mut sent = 0;
     let mut seed = opts.seed;
     while sent < opts.episodes {
-        match record_episode(seed, opts.image_size) {
+        match record_episode(seed, opts.image_size, ActionNoise::degrees(opts.action_noise_degrees)) {
             Ok(episode) => {
                 if episodes.send(RecordedEpisode { seed, episode }).is_err() {
                     break;
@@ -193,11 +203,12 @@ fn record_episodes(
     Ok(skipped)
 }
 
-/// The expert's episode on the scene of `seed` with both cameras rendered at `size`x`size` before
-/// every action (LeRobot's observation-then-action order), or the frames it ran if it failed.
-fn record_episode(seed: u64, size: u32) -> Result<Episode, u32> {
+/// The expert's episode on the scene of `seed`, executed with `noise`, with both cameras rendered at
+/// `size`x`size` before every action (LeRobot's observation-then-action order), or the frames it ran if
+/// it failed.
+fn record_episode(seed: u64, size: u32, noise: ActionNoise) -> Result<Episode, u32> {
     let mut frames = Vec::new();
-    let scene = drive_expert(seed, ExpertEnd::PlanDone, MAX_EPISODE_FRAMES, |scene, action| {
+    let scene = drive_expert(seed, ExpertEnd::PlanDone, MAX_EPISODE_FRAMES, noise, |scene, action| {
         let images = Camera::ALL
             .iter()
             .map(|&camera| RgbImage {

@@ -12,7 +12,7 @@ use fedvla_data::RgbImage;
 use fedvla_data::video::{CameraVideoWriter, VideoEncoding};
 use fedvla_federation::RolloutEpisode;
 use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
-use fedvla_sim::{Camera, ExpertEnd, FPS, Scene, drive_expert, render};
+use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, Scene, drive_expert, render};
 
 /// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
 /// ones no policy was trained on.
@@ -125,7 +125,8 @@ pub fn evaluate_in_sim(
 /// The scripted expert from `Scene::new(seed)`, ended like a policy episode: on success or when
 /// the budget runs out.
 fn run_expert(seed: u64, max_frames: usize, mut on_frame: impl FnMut(&Scene)) -> EpisodeResult {
-    let scene = drive_expert(seed, ExpertEnd::Success, max_frames as u32, |scene, _| on_frame(scene));
+    let scene =
+        drive_expert(seed, ExpertEnd::Success, max_frames as u32, ActionNoise::NONE, |scene, _| on_frame(scene));
     on_frame(&scene);
     EpisodeResult { seed, success: scene.success(), length: scene.frame() as usize }
 }

@@ -51,7 +51,7 @@ pub struct SmolVlaWorkload {
 }
 
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
-/// `dataset-episodes` episodes at the policy's image size (`data/so100-sim/<N>ep_<S>px`, recorded by the sim's
+/// `dataset-episodes` episodes at the policy's image size (`data/so100-sim/<N>ep_<S>px[_noise<D>]`, recorded by the sim's
 /// expert from seed 0 on first use, whatever the run's seed, so every run of that size shares it).
 fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathBuf> {
     if config.dataset != EMBEDDED_DATASET {
@@ -77,7 +77,12 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
         "recording the embedded SO-100 dataset [{bar:30}] {pos}/{len} expert episodes {msg} ({elapsed})",
     )?);
     bar.println(format!("recording {} expert episodes into {}", config.dataset_episodes, root.display()));
-    let options = GenDataOptions { episodes: config.dataset_episodes, seed: 0, image_size: image_size as u32 };
+    let options = GenDataOptions {
+        episodes: config.dataset_episodes,
+        seed: 0,
+        image_size: image_size as u32,
+        action_noise_degrees: config.dataset_action_noise as f32,
+    };
     generate_dataset(&root, &options, |event| match event {
         GenProgress::Frame { total_frames, .. } => bar.set_message(format!("{total_frames} frames")),
         GenProgress::EpisodeWritten { .. } => bar.inc(1),
@@ -87,9 +92,13 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
     Ok(root)
 }
 
-/// Where the embedded default dataset of this many episodes at this image size lives.
+/// Where the embedded default dataset of this many episodes at this image size (and perturbation) lives.
 pub fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
-    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px", config.dataset_episodes))
+    let noise = match config.dataset_action_noise {
+        0.0 => String::new(),
+        degrees => format!("_noise{degrees}"),
+    };
+    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}", config.dataset_episodes))
 }
 
 fn partition_strategy(p: Partitioning) -> PartitionStrategy {

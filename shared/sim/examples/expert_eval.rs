@@ -1,13 +1,15 @@
-//! Success rate of the scripted expert over seeds 0..N:
-//! `cargo run --release -p fedvla-sim --example expert_eval -- N`.
-use fedvla_sim::run_expert_episode;
+//! Success rate of the scripted expert over seeds 0..N, optionally executing its goals perturbed by
+//! D degrees (the recovery demonstrations of `gen-data --action-noise`):
+//! `cargo run --release -p fedvla-sim --example expert_eval -- N [D]`.
+use fedvla_sim::{ActionNoise, run_expert_episode};
 
 fn main() {
     let episodes: u64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(100);
+    let noise = ActionNoise::degrees(std::env::args().nth(2).and_then(|s| s.parse().ok()).unwrap_or(0.0));
     let mut successes = 0;
     let mut frames = 0;
     for seed in 0..episodes {
-        let outcome = run_expert_episode(seed, 400);
+        let outcome = run_expert_episode(seed, 400, noise);
         successes += u32::from(outcome.success);
         frames += outcome.frames;
         if !outcome.success {

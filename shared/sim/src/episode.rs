@@ -2,6 +2,7 @@
 
 use crate::arm::JOINT_COUNT;
 use crate::expert::Expert;
+use crate::perturbation::{ActionNoise, Perturbation};
 use crate::scene::Scene;
 use rapier3d::math::Vec3;
 
@@ -31,15 +32,19 @@ pub enum ExpertEnd {
 }
 
 /// The one expert episode loop: the expert on the scene of `seed`, frame by frame, until `end` or `max_frames`
-/// frames. `on_frame` sees the scene before each action and the action; returns the scene as it ended.
+/// frames, the arm executing its goals perturbed by `noise` (none: as they are). `on_frame` sees the scene
+/// before each action and the expert's action (unperturbed: what a demonstration records); returns the scene
+/// as it ended.
 pub fn drive_expert(
     seed: u64,
     end: ExpertEnd,
     max_frames: u32,
+    noise: ActionNoise,
     mut on_frame: impl FnMut(&Scene, &[f32; JOINT_COUNT]),
 ) -> Scene {
     let mut scene = Scene::new(seed);
     let mut expert = Expert::new(&scene);
+    let mut perturbation = Perturbation::new(noise, seed);
     while scene.frame() < max_frames {
         let over = match end {
             ExpertEnd::PlanDone => expert.done(),
@@ -50,16 +55,17 @@ pub fn drive_expert(
         }
         let action = expert.act(&scene);
         on_frame(&scene, &action);
-        scene.step(action);
+        scene.step(perturbation.apply(&action));
     }
     scene
 }
 
-/// Runs the expert on the scene of `seed` until its plan is done or `max_frames` pass.
-pub fn run_expert_episode(seed: u64, max_frames: u32) -> EpisodeOutcome {
+/// Runs the expert on the scene of `seed` until its plan is done or `max_frames` pass, executing its goals
+/// perturbed by `noise`.
+pub fn run_expert_episode(seed: u64, max_frames: u32, noise: ActionNoise) -> EpisodeOutcome {
     let mut states = Vec::new();
     let mut actions = Vec::new();
-    let scene = drive_expert(seed, ExpertEnd::PlanDone, max_frames, |scene, action| {
+    let scene = drive_expert(seed, ExpertEnd::PlanDone, max_frames, noise, |scene, action| {
         states.push(scene.state());
         actions.push(*action);
     });

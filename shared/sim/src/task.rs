@@ -1,6 +1,7 @@
 //! The "put the cube in the bowl" task: its language instruction, the seeded random placement
 //! of cube and bowl on the table, and the dimensions the success test is judged against.
 
+use crate::splitmix::SplitMix64;
 use rapier3d::math::Vec3;
 
 /// The language instruction recorded with every episode (LeRobot `task`).
@@ -57,29 +58,6 @@ impl Layout {
             cube_yaw,
             bowl_position: on_table(bowl_azimuth, bowl_distance, 0.0),
         }
-    }
-}
-
-/// A small, portable, seedable generator (SplitMix64): layouts must be identical on every
-/// platform, including wasm32.
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [0, 1).
-    fn next_f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    fn range(&mut self, low: f32, high: f32) -> f32 {
-        low + (high - low) * self.next_f32()
     }
 }
 

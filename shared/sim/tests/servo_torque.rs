@@ -159,7 +159,7 @@ fn speed_limits_hold_and_a_heavy_lift_is_slower() {
     assert_eq!(scene.joint_torques()[SHOULDER_LIFT], -STALL_TORQUE);
 
     // Through a whole expert episode no joint outruns the top speed.
-    let outcome = run_expert_episode(3, 400);
+    let outcome = run_expert_episode(3, 400, fedvla_sim::ActionNoise::NONE);
     for pair in outcome.states.windows(2) {
         let (from, to) = (arm::from_robot_units(&pair[0]), arm::from_robot_units(&pair[1]));
         for i in 0..JOINT_COUNT {

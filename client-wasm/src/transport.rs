@@ -1,6 +1,6 @@
 //! The browser's `ClientTransport`: the federation WebSocket through gloo-net, models and uploads through fetch.
 
-use fedvla_federation::{BoxError, ClientTransport, Video};
+use fedvla_federation::{BoxError, ClientTransport, Video, routes};
 use futures_util::stream::{SplitSink, SplitStream};
 use futures_util::{SinkExt, StreamExt};
 use gloo_net::websocket::Message;
@@ -20,8 +20,8 @@ impl BrowserTransport {
     /// Opens `ws(s)://<host>/ws` of the server at `origin` (http or https).
     pub fn connect(origin: &str) -> Result<Self, BoxError> {
         let ws_url = match origin.split_once("://") {
-            Some(("https", rest)) => format!("wss://{rest}/ws"),
-            Some(("http", rest)) => format!("ws://{rest}/ws"),
+            Some(("https", rest)) => format!("wss://{rest}{}", routes::WS),
+            Some(("http", rest)) => format!("ws://{rest}{}", routes::WS),
             _ => return Err(format!("server origin {origin:?} is not http(s)://host:port").into()),
         };
         let socket = WebSocket::open(&ws_url).map_err(|e| format!("opening {ws_url}: {e}"))?;
@@ -58,7 +58,7 @@ impl ClientTransport for BrowserTransport {
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
-        let url = self.url(&format!("/rollout/{round}/{}", video.file_name));
+        let url = self.url(&routes::rollout_video(round, &video.file_name));
         let body = js_sys::Uint8Array::from(video.bytes.as_slice());
         let response = gloo_net::http::Request::post(&url)
             .header("authorization", &format!("Bearer {session}"))

@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 
 use fedvla_data::{FeatureStats, LeRobotDataset, RgbImage};
 use fedvla_sim::{Camera, FPS, JOINT_COUNT, Scene, TASK, render, run_expert_episode};
-use fedvla_workloads::datagen::{GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, generate_dataset, recorded_seeds};
+use fedvla_workloads::datagen::{
+    GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, ensure_unrecorded, generate_dataset, recorded_seeds,
+};
 
 const SIZE: u32 = 64;
 
@@ -134,6 +136,19 @@ fn recovery_demonstrations_record_the_expert_goals_from_perturbed_states() {
             assert_eq!(dataset.vector("action", row), Some(&perturbed.actions[k][..]), "seed {seed} frame {k}");
         }
     }
+}
+
+#[test]
+fn evaluation_on_recorded_layouts_is_refused() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let opts = GenDataOptions { episodes: 2, seed: 3, image_size: SIZE, ..Default::default() };
+    let summary = generate_dataset(dir.path(), &opts, |_| {}).expect("generate");
+    let first = summary.seeds[0];
+    let err = ensure_unrecorded(dir.path(), 0..first + 1).expect_err("seed recorded");
+    assert!(err.to_string().contains(&format!("seed {first}")), "{err}");
+    ensure_unrecorded(dir.path(), 0..first).expect("seeds below the recording");
+    let held_out = fedvla_workloads::sim_eval::DEFAULT_SEED;
+    ensure_unrecorded(dir.path(), held_out..held_out + 50).expect("the default evaluation layouts");
 }
 
 #[test]

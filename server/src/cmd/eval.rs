@@ -8,6 +8,7 @@ use anyhow::Context;
 use burn::tensor::Device;
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_policy::PolicyDir;
+use fedvla_workloads::datagen::ensure_unrecorded;
 use fedvla_workloads::sim_eval::{
     Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, DEFAULT_VIDEO_SIZE, RESULTS_FILE, SimEvalOptions, evaluate_in_sim,
 };
@@ -32,6 +33,9 @@ pub struct Args {
     /// First sim seed (training data uses seeds from 0).
     #[arg(long, default_value_t = DEFAULT_SEED)]
     seed: u64,
+    /// A dataset the policy trained on (repeatable): refuse when it recorded any of the evaluation's layouts.
+    #[arg(long)]
+    training_data: Vec<PathBuf>,
     /// Frame budget of an episode, at 30 fps.
     #[arg(long, default_value_t = DEFAULT_MAX_FRAMES)]
     max_frames: usize,
@@ -41,6 +45,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    for dataset in &args.training_data {
+        ensure_unrecorded(dataset, args.seed..args.seed + args.episodes as u64)?;
+    }
     let opts = SimEvalOptions {
         episodes: args.episodes,
         seed: args.seed,

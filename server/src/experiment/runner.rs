@@ -10,7 +10,9 @@ use fedvla_aggregator::records::RolloutResults;
 use fedvla_aggregator::run_dir::{POLICY_DIR, RunDir};
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_policy::PolicyDir;
+use fedvla_workloads::datagen::ensure_unrecorded;
 use fedvla_workloads::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
+use fedvla_workloads::smolvla::dataset_root;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::config::{Arm, ExperimentConfig, FINAL_FILE, FinalEvaluation, Mode, write_final};
@@ -47,6 +49,9 @@ pub fn run(config: &ExperimentConfig, log: &dyn Fn(&Path) -> anyhow::Result<()>)
         result.with_context(|| format!("arm {} seed {seed} ({})", arm.name, path.display()))?;
         let train_seconds = started.elapsed().as_secs_f64();
         let last = final_round(&path)?;
+        let layouts = config.eval_seed..config.eval_seed + config.eval_episodes as u64;
+        ensure_unrecorded(&dataset_root(&run_config)?, layouts)
+            .with_context(|| format!("arm {} seed {seed}", arm.name))?;
         let sim = evaluate_final(&path, last, config, run_config.rollout_max_frames as usize)?;
         bar.println(format!(
             "{} seed {seed}: sim success {:.2} on {} held-out layouts ({:.0} s)",

@@ -91,6 +91,24 @@ pub fn recorded_seeds(root: &Path) -> anyhow::Result<Option<RecordedSeeds>> {
     }
 }
 
+/// Refuses to evaluate on `seeds` when the dataset at `root` recorded any of them: a success on a layout the
+/// policy was trained on measures memory, not the task. A dataset the sim did not record (no [`SEEDS_FILE`])
+/// passes, as nothing can be said of its layouts.
+pub fn ensure_unrecorded(root: &Path, seeds: std::ops::Range<u64>) -> anyhow::Result<()> {
+    let Some(recorded) = recorded_seeds(root)? else { return Ok(()) };
+    if let Some(seed) = recorded.seeds.iter().find(|s| seeds.contains(s)) {
+        anyhow::bail!(
+            "evaluation seeds {}..{} include seed {seed}, a layout the training dataset {} recorded (its seeds \
+             reach {}): evaluate from a seed above them",
+            seeds.start,
+            seeds.end,
+            root.display(),
+            recorded.seeds.iter().max().copied().unwrap_or(0)
+        );
+    }
+    Ok(())
+}
+
 /// The expert's episode on one seed, every frame with its state, action and camera images.
 struct RecordedEpisode {
     seed: u64,

@@ -53,9 +53,9 @@ pub struct SmolVlaWorkload {
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
 /// `dataset-episodes` episodes at the policy's image size (`data/so100-sim/<N>ep_<S>px[_noise<D>]`, recorded by the sim's
 /// expert from seed 0 on first use, whatever the run's seed, so every run of that size shares it).
-fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathBuf> {
+fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
+    let root = dataset_root(config)?;
     if config.dataset != EMBEDDED_DATASET {
-        let root = PathBuf::from(&config.dataset);
         anyhow::ensure!(
             root.join("meta/info.json").exists(),
             "dataset {} not found (no meta/info.json); point `dataset` at a LeRobot dataset or use the embedded default {:?}",
@@ -64,7 +64,6 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
         );
         return Ok(root);
     }
-    let root = embedded_dataset(config, image_size);
     if root.join("meta/info.json").exists() {
         return Ok(root);
     }
@@ -80,7 +79,7 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
     let options = GenDataOptions {
         episodes: config.dataset_episodes,
         seed: 0,
-        image_size: image_size as u32,
+        image_size: model_config(config)?.resize_imgs_with_padding.1 as u32,
         action_noise_degrees: config.dataset_action_noise as f32,
     };
     generate_dataset(&root, &options, |event| match event {
@@ -92,8 +91,17 @@ fn ensure_dataset(config: &RunConfig, image_size: usize) -> anyhow::Result<PathB
     Ok(root)
 }
 
+/// The dataset a run trains on, recorded or not yet: `dataset`, or the embedded default's recording for
+/// the run's episodes, image size and perturbation.
+pub fn dataset_root(config: &RunConfig) -> anyhow::Result<PathBuf> {
+    if config.dataset != EMBEDDED_DATASET {
+        return Ok(PathBuf::from(&config.dataset));
+    }
+    Ok(embedded_dataset(config, model_config(config)?.resize_imgs_with_padding.1))
+}
+
 /// Where the embedded default dataset of this many episodes at this image size (and perturbation) lives.
-pub fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
+fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
     let noise = match config.dataset_action_noise {
         0.0 => String::new(),
         degrees => format!("_noise{degrees}"),
@@ -177,7 +185,7 @@ impl SmolVlaWorkload {
     }
 
     fn prepare_with(config: &RunConfig, shard_dir: &Path, pooled: bool) -> anyhow::Result<Self> {
-        let root = ensure_dataset(config, model_config(config)?.resize_imgs_with_padding.1)?;
+        let root = ensure_dataset(config)?;
         let dataset = LeRobotDataset::open(&root).with_context(|| format!("opening dataset {}", root.display()))?;
         let cfg = policy_config(config, &dataset)?;
         let tokenizer = WordTokenizer::from_texts(dataset.tasks().iter().map(String::as_str));
@@ -209,10 +217,20 @@ impl SmolVlaWorkload {
             ids.into_iter().map(|i| i as u32).collect()
         };
         let length: BTreeMap<usize, usize> = dataset.episodes().iter().map(|e| (e.episode_index, e.length)).collect();
+        // Every episode is decoded once per shard it lands in; with hundreds of episodes that takes minutes.
+        let pooled_episodes = if pooled { parts.clients.iter().map(|c| c.train.len()).sum::<usize>() } else { 0 };
+        let to_pack = parts.clients.iter().map(|c| c.all().count()).sum::<usize>()
+            + parts.server_held_out.len()
+            + pooled_episodes;
+        let bar = indicatif::ProgressBar::new(to_pack as u64);
+        bar.set_style(indicatif::ProgressStyle::with_template(
+            "building shards [{bar:30}] {pos}/{len} episodes decoded and packed ({elapsed}, eta {eta})",
+        )?);
+        let mut packed = |_: &fedvla_data::EpisodeMeta| bar.inc(1);
         let client_shards = (0..config.num_clients)
             .map(|k| {
                 let path = shard_dir.join(format!("client_{k}.safetensors"));
-                build_shard(&dataset, &parts, k, &spec, Some(&tokenize), &path)
+                build_shard(&dataset, &parts, k, &spec, Some(&tokenize), &path, &mut packed)
                     .with_context(|| format!("building shard {k}"))?;
                 let train_examples = parts.clients[k].train.iter().map(|e| length[e] as u64).sum();
                 Ok(ShardOffer { file: Some(path), train_examples })
@@ -224,7 +242,7 @@ impl SmolVlaWorkload {
             ..parts.clone()
         };
         let server_shard = shard_dir.join("server_heldout.safetensors");
-        build_shard(&dataset, &server_parts, 0, &spec, Some(&tokenize), &server_shard)
+        build_shard(&dataset, &server_parts, 0, &spec, Some(&tokenize), &server_shard, &mut packed)
             .context("building the server's held-out shard")?;
         let pooled_shard = shard_dir.join("pooled_train.safetensors");
         if pooled {
@@ -232,9 +250,10 @@ impl SmolVlaWorkload {
             let mut train: Vec<usize> = parts.clients.iter().flat_map(|c| c.train.iter().copied()).collect();
             train.sort_unstable();
             let pooled = Partition { clients: vec![ClientSplit { train, held_out: Vec::new() }], ..parts.clone() };
-            build_shard(&dataset, &pooled, 0, &spec, Some(&tokenize), &pooled_shard)
+            build_shard(&dataset, &pooled, 0, &spec, Some(&tokenize), &pooled_shard, &mut packed)
                 .context("building the pooled training shard")?;
         }
+        bar.finish_and_clear();
         let weights = match &config.init_policy {
             path if path.is_empty() => init_random(&cfg.param_specs(), config.seed),
             path => {

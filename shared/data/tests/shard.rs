@@ -27,7 +27,11 @@ fn shard_round_trip_and_checksums() {
     };
     let parts = partition(&episode_tasks(&ds), &config).expect("partition");
     let out = dir.join("shards/client-000.safetensors");
-    let sidecar = build_shard(&ds, &parts, 0, &SPEC, Some(&word_tokenizer), &out).expect("build");
+    let mut packed = Vec::new();
+    let sidecar =
+        build_shard(&ds, &parts, 0, &SPEC, Some(&word_tokenizer), &out, &mut |e| packed.push(e.episode_index))
+            .expect("build");
+    assert_eq!(packed, [0, 2], "progress is told of every episode packed, in order");
 
     assert_eq!(sidecar.file_bytes, std::fs::metadata(&out).expect("stat").len());
     verify_shard_file(&out, &sidecar).expect("fresh file verifies");

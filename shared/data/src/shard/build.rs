@@ -48,7 +48,8 @@ fn i64_tensor(values: &[i64], shape: Vec<usize>) -> OwnedTensor {
 }
 
 /// Builds client `client`'s shard of `partition` from `dataset` at `out` (a `.safetensors` path) and
-/// writes the sidecar manifest next to it. `tokenize` turns a task string into token ids.
+/// writes the sidecar manifest next to it. `tokenize` turns a task string into token ids. `on_episode`
+/// hears of every episode packed (decoding its videos is the slow part).
 pub fn build_shard(
     dataset: &LeRobotDataset,
     partition: &Partition,
@@ -56,6 +57,7 @@ pub fn build_shard(
     spec: &ShardSpec,
     tokenize: Option<Tokenizer>,
     out: &Path,
+    on_episode: &mut dyn FnMut(&EpisodeMeta),
 ) -> Result<ShardFileManifest> {
     let split = partition.clients.get(client).ok_or_else(|| {
         DataError::InvalidInput(format!(
@@ -115,6 +117,7 @@ pub fn build_shard(
             i64::from(held_out.contains(ep_id)),
         ]);
         rows += indices.len();
+        on_episode(episode);
     }
 
     let mut tensors: BTreeMap<String, OwnedTensor> = BTreeMap::new();

@@ -83,4 +83,32 @@ fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
     )
     .unwrap();
     assert_eq!(numbers(&again), numbers(&report), "same seeds, same numbers");
+
+    // Layouts the dataset recorded are no held-out evaluation: the run is refused before it is scored.
+    let on_training_layouts = ExperimentConfig {
+        seeds: vec![3],
+        eval_seed: 0,
+        arms: first.arms[..1].to_vec(),
+        ..config(&tmp.path().join("c"), &dataset)
+    };
+    let err = experiment::run(&on_training_layouts, &|_| Ok(())).expect_err("evaluation seeds recorded");
+    assert!(format!("{err:#}").contains("a layout the training dataset"), "{err:#}");
+}
+
+#[test]
+fn shipped_experiments_load_and_evaluate_on_unrecorded_layouts() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/experiments");
+    let mut shipped = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let config = ExperimentConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+        assert!(config.eval_episodes >= 50, "{}: the issue asks for at least 50 episodes per run", path.display());
+        for arm in &config.arms {
+            let run = config.run_config(arm, config.seeds[0]).unwrap();
+            // The embedded dataset records seeds from 0 on, never as many as the evaluation's first seed.
+            assert!(run.dataset_episodes * 2 < config.eval_seed as usize, "{}: {}", path.display(), arm.name);
+        }
+        shipped += 1;
+    }
+    assert!(shipped >= 1, "configs/experiments/fed-vs-central.toml is shipped");
 }

@@ -42,12 +42,70 @@ pub struct SmolVlaWorkload {
     cfg: SmolVlaConfig,
     weights: WeightMap,
     stats: NormStats,
-    tokenizer: WordTokenizer,
+    tokenizer: RunTokenizer,
     client_shards: Vec<ShardOffer>,
     server_shard: PathBuf,
     /// Every client's training episodes in one shard: what the centralized baseline trains on.
     pooled_shard: PathBuf,
     seed: u64,
+}
+
+/// The run's one tokenizer, chosen once: shards, held-out evaluation, every rollout and the export use it.
+#[derive(Clone)]
+enum RunTokenizer {
+    /// Random initialisation: the word-level tokenizer of the dataset's task strings, exported as a generated `vlm/`.
+    Generated(WordTokenizer),
+    /// `init-policy`: the checkpoint's own (its ids are what its token embedding was trained on), and the
+    /// checkpoint's backbone folder, copied into every export.
+    Checkpoint { tokenizer: Tokenizer, backbone: PathBuf },
+}
+
+impl RunTokenizer {
+    /// The checkpoint's tokenizer when `init` is given, else the word-level one of `tasks`.
+    fn choose(init: Option<(&Path, &PolicyDir)>, tasks: &[String]) -> anyhow::Result<Self> {
+        let Some((path, policy)) = init else {
+            return Ok(Self::Generated(WordTokenizer::from_texts(tasks.iter().map(String::as_str))));
+        };
+        let no_tokenizer = || {
+            format!(
+                "init-policy {}: no tokenizer.json in its backbone folder (vlm/, or the folder config.json's \
+                 vlm_model_name {:?} names); a run from a checkpoint tokenizes with the checkpoint's own tokenizer",
+                path.display(),
+                policy.cfg.vlm_model_name
+            )
+        };
+        let tokenizer = policy.tokenizer()?.with_context(no_tokenizer)?;
+        let backbone = policy.vlm_dir.clone().with_context(no_tokenizer)?;
+        Ok(Self::Checkpoint { tokenizer, backbone })
+    }
+
+    fn tokenizer(&self) -> Tokenizer {
+        match self {
+            Self::Generated(word) => Tokenizer::Word(word.clone()),
+            Self::Checkpoint { tokenizer, .. } => tokenizer.clone(),
+        }
+    }
+
+    fn vocab_size(&self) -> usize {
+        match self {
+            Self::Generated(word) => word.vocab_size(),
+            Self::Checkpoint { tokenizer, .. } => tokenizer.vocab_size(),
+        }
+    }
+
+    fn encode(&self, task: &str, max_length: usize, pad_to_max: bool) -> anyhow::Result<TaskTokens> {
+        Ok(match self {
+            Self::Generated(word) => word.encode_batch(&[task], max_length, pad_to_max),
+            Self::Checkpoint { tokenizer, .. } => tokenizer.encode_batch(&[task], max_length, pad_to_max)?,
+        })
+    }
+
+    fn backbone(&self) -> Backbone<'_> {
+        match self {
+            Self::Generated(word) => Backbone::Generated(word),
+            Self::Checkpoint { backbone, .. } => Backbone::CopyFrom(backbone),
+        }
+    }
 }
 
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
@@ -188,10 +246,19 @@ impl SmolVlaWorkload {
         let root = ensure_dataset(config)?;
         let dataset = LeRobotDataset::open(&root).with_context(|| format!("opening dataset {}", root.display()))?;
         let cfg = policy_config(config, &dataset)?;
-        let tokenizer = WordTokenizer::from_texts(dataset.tasks().iter().map(String::as_str));
+        let init_path = Path::new(&config.init_policy);
+        let init = match config.init_policy.as_str() {
+            "" => None,
+            path => Some(PolicyDir::load(init_path).with_context(|| format!("loading init-policy {path}"))?),
+        };
+        let tokenizer = RunTokenizer::choose(init.as_ref().map(|p| (init_path, p)), dataset.tasks())?;
         anyhow::ensure!(
             tokenizer.vocab_size() <= cfg.vlm.text_config.vocab_size,
-            "the dataset's task strings need {} tokens, more than the {} of model size {}",
+            "the run's tokenizer ({}) has {} tokens, more than the {} of the token embedding of model size {}",
+            match &tokenizer {
+                RunTokenizer::Generated(_) => "the word-level one of the dataset's task strings".to_string(),
+                RunTokenizer::Checkpoint { backbone, .. } => format!("{}/tokenizer.json", backbone.display()),
+            },
             tokenizer.vocab_size(),
             cfg.vlm.text_config.vocab_size,
             config.model_size
@@ -212,10 +279,21 @@ impl SmolVlaWorkload {
             tokenizer_max_length: cfg.tokenizer_max_length,
             pad_token_id: PAD_ID as u32,
         };
-        let tokenize = |task: &str| -> Vec<u32> {
-            let (ids, _, _) = tokenizer.encode_batch(&[task], cfg.tokenizer_max_length, false);
-            ids.into_iter().map(|i| i as u32).collect()
-        };
+        // Every task string tokenized up front (and "" for rows without one), so a tokenizer error stops the
+        // run here, naming the task.
+        let task_ids: BTreeMap<&str, Vec<u32>> = dataset
+            .tasks()
+            .iter()
+            .map(String::as_str)
+            .chain([""])
+            .map(|task| {
+                let (ids, _, _) = tokenizer
+                    .encode(task, cfg.tokenizer_max_length, false)
+                    .with_context(|| format!("tokenizing the dataset's task {task:?}"))?;
+                anyhow::Ok((task, ids.into_iter().map(|i| i as u32).collect()))
+            })
+            .collect::<anyhow::Result<_>>()?;
+        let tokenize = |task: &str| -> Vec<u32> { task_ids.get(task).cloned().unwrap_or_default() };
         let length: BTreeMap<usize, usize> = dataset.episodes().iter().map(|e| (e.episode_index, e.length)).collect();
         // Every episode is decoded once per shard it lands in; with hundreds of episodes that takes minutes.
         let pooled_episodes = if pooled { parts.clients.iter().map(|c| c.train.len()).sum::<usize>() } else { 0 };
@@ -254,13 +332,13 @@ impl SmolVlaWorkload {
                 .context("building the pooled training shard")?;
         }
         bar.finish_and_clear();
-        let weights = match &config.init_policy {
-            path if path.is_empty() => init_random(&cfg.param_specs(), config.seed),
-            path => {
-                let policy = PolicyDir::load(Path::new(path))?;
+        let weights = match init {
+            None => init_random(&cfg.param_specs(), config.seed),
+            Some(policy) => {
                 anyhow::ensure!(
                     policy.cfg.param_specs() == cfg.param_specs(),
-                    "init-policy {path} does not have the tensors of model size {} with this dataset's cameras",
+                    "init-policy {} does not have the tensors of model size {} with this dataset's cameras",
+                    config.init_policy,
                     config.model_size
                 );
                 policy.weights
@@ -295,8 +373,8 @@ impl SmolVlaWorkload {
     }
 
     /// The sim task as the policy reads it.
-    fn task_tokens(&self) -> TaskTokens {
-        self.tokenizer.encode_batch(&[TASK], self.cfg.tokenizer_max_length, self.cfg.pad_language_to == "max_length")
+    fn task_tokens(&self) -> anyhow::Result<TaskTokens> {
+        self.tokenizer.encode(TASK, self.cfg.tokenizer_max_length, self.cfg.pad_language_to == "max_length")
     }
 
     /// The backbone tensors no client trains: exported with every round and downloaded once by volunteers.
@@ -365,7 +443,7 @@ struct LeRobotExport {
     cfg: SmolVlaConfig,
     frozen: Arc<WeightMap>,
     stats: NormStats,
-    tokenizer: WordTokenizer,
+    tokenizer: RunTokenizer,
 }
 
 impl ModelExporter for LeRobotExport {
@@ -378,7 +456,7 @@ impl ModelExporter for LeRobotExport {
     ) -> Result<Option<SimFigures>, BoxError> {
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
-        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, Backbone::Generated(&self.tokenizer))?;
+        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, self.tokenizer.backbone())?;
         Ok(None)
     }
 }
@@ -414,13 +492,13 @@ impl Workload for SmolVlaWorkload {
                 cfg: self.cfg.clone(),
                 frozen,
                 stats: self.stats.clone(),
-                tokenizer: Tokenizer::Word(self.tokenizer.clone()),
+                tokenizer: self.tokenizer.tokenizer(),
             }),
         ]
     }
 
     fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
-        let (ids, mask, _) = self.task_tokens();
+        let (ids, mask, _) = self.task_tokens().map_err(|e| format!("{e:#}"))?;
         Ok(VolunteerOffer {
             workload: WorkloadKind::Smolvla,
             shards: self.client_shards.clone(),

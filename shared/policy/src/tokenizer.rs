@@ -175,6 +175,15 @@ impl Tokenizer {
         }
     }
 
+    /// Token ids it can produce: what the policy's token embedding must hold.
+    pub fn vocab_size(&self) -> usize {
+        match self {
+            Self::Word(w) => w.vocab_size(),
+            #[cfg(not(target_arch = "wasm32"))]
+            Self::HuggingFace(t) => t.get_vocab_size(true),
+        }
+    }
+
     /// `[B, L]` token ids, attention mask and L for a batch of task strings.
     pub fn encode_batch(
         &self,

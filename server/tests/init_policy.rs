@@ -1,0 +1,120 @@
+//! A run from a checkpoint (`init-policy`) tokenizes with the checkpoint's own tokenizer, in its shards, its
+//! rollouts and its export, on the public LeRobot fixture (a BPE tokenizer that no word-level one resembles).
+//! With `FEDVLA_REQUIRE_FIXTURES=1` (tests/run.sh) a missing `../shared/fixtures` fails instead of skipping.
+
+use std::path::{Path, PathBuf};
+
+use fedvla_aggregator::config::RunConfig;
+use fedvla_data::{CameraSpec, ClientShard, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage};
+use fedvla_policy::{PolicyDir, Tokenizer};
+use fedvla_workloads::smolvla::SmolVlaWorkload;
+use fedvla_workloads::workload::Workload;
+
+/// The fixture's own task string, whose ids LeRobot recorded in `inputs.safetensors`.
+const FIXTURE_TASK: &str = "pick up the red cube";
+
+fn fixture() -> Option<PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures/smolvla-tiny-a");
+    if dir.join("config.json").exists() {
+        return Some(dir);
+    }
+    if std::env::var("FEDVLA_REQUIRE_FIXTURES").is_ok_and(|v| v == "1") {
+        panic!("FEDVLA_REQUIRE_FIXTURES=1 but {} is not there", dir.display());
+    }
+    eprintln!("SKIPPED: {} not found next to the checkout", dir.display());
+    None
+}
+
+/// A small dataset with the fixture's cameras (32x32 top and wrist) and the fixture's task.
+fn dataset(root: &Path) {
+    let cameras = ["top", "wrist"].map(|name| CameraSpec::new(name, 32, 32)).to_vec();
+    let mut writer = DatasetWriter::create(root, DatasetSpec::so100(cameras)).unwrap();
+    for episode in 0..4u8 {
+        let frames = (0..6u8)
+            .map(|t| Frame {
+                state: (0..6).map(|j| f32::from(episode + t + j)).collect(),
+                action: (0..6).map(|j| f32::from(episode + t + j) + 0.5).collect(),
+                images: (0..2).map(|c| RgbImage::new(32, 32, vec![40 * c + 10 * t; 32 * 32 * 3]).unwrap()).collect(),
+            })
+            .collect();
+        writer.add_episode(&Episode { task: FIXTURE_TASK.into(), frames }).unwrap();
+    }
+    writer.finish().unwrap();
+}
+
+#[test]
+fn a_run_from_a_checkpoint_uses_the_checkpoints_tokenizer_everywhere() {
+    let Some(fixture) = fixture() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    dataset(&data);
+    let config = RunConfig::default()
+        .with_overrides(&format!(
+            "model-size=tiny num-clients=2 rollout-episodes=0 dataset={} init-policy={}",
+            data.display(),
+            fixture.display()
+        ))
+        .unwrap();
+    let workload = SmolVlaWorkload::prepare(&config, &tmp.path().join("shards")).expect("prepare from the fixture");
+
+    // The fixture's tokenizer, and the ids LeRobot itself recorded for this task.
+    let checkpoint = Tokenizer::read(&fixture.join("vlm/tokenizer.json")).unwrap();
+    let (ids, _, len) = checkpoint.encode_batch(&[FIXTURE_TASK], 48, false).unwrap();
+    let inputs = safetensors_i64(&fixture.join("inputs.safetensors"), "observation.language.tokens");
+    assert_eq!(ids, inputs[..len], "the fixture's tokenizer gives LeRobot's ids");
+
+    let offer = workload.volunteer_offer().unwrap();
+    for shard in &offer.shards {
+        let shard = ClientShard::read(shard.file.as_ref().unwrap()).unwrap();
+        let (shard_ids, _) = shard.task_tokens.expect("shards carry the task's tokens");
+        assert_eq!(shard_ids[..len], ids[..], "shard token ids are the checkpoint tokenizer's");
+    }
+
+    // The export carries the checkpoint's backbone folder, tokenizer included, byte for byte.
+    let out = tmp.path().join("round_0");
+    let global = workload.initial_model().unwrap();
+    for exporter in workload.exporters() {
+        exporter.export(0, &global, &config, &out).unwrap();
+    }
+    let exported = out.join("policy/vlm/tokenizer.json");
+    assert_eq!(std::fs::read(&exported).unwrap(), std::fs::read(fixture.join("vlm/tokenizer.json")).unwrap());
+    let reloaded = PolicyDir::load(&out.join("policy")).unwrap();
+    let (again, _, _) = reloaded.tokenizer().unwrap().unwrap().encode_batch(&[FIXTURE_TASK], 48, false).unwrap();
+    assert_eq!(again, ids);
+}
+
+#[test]
+fn a_checkpoint_without_a_tokenizer_is_refused_by_name() {
+    let Some(fixture) = fixture() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    dataset(&data);
+    // The fixture without its backbone's tokenizer.
+    let policy = tmp.path().join("policy");
+    std::fs::create_dir_all(policy.join("vlm")).unwrap();
+    for entry in std::fs::read_dir(&fixture).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, policy.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    std::fs::copy(fixture.join("vlm/config.json"), policy.join("vlm/config.json")).unwrap();
+    let config = RunConfig::default()
+        .with_overrides(&format!("model-size=tiny dataset={} init-policy={}", data.display(), policy.display()))
+        .unwrap();
+    let err = SmolVlaWorkload::prepare(&config, &tmp.path().join("shards")).err().expect("no tokenizer");
+    assert!(format!("{err:#}").contains("no tokenizer.json"), "{err:#}");
+}
+
+fn safetensors_i64(path: &Path, key: &str) -> Vec<i64> {
+    let bytes = std::fs::read(path).unwrap();
+    let tensors = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let view = tensors.tensor(key).unwrap();
+    match view.dtype() {
+        safetensors::Dtype::I64 => view.data().chunks(8).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect(),
+        safetensors::Dtype::I32 => {
+            view.data().chunks(4).map(|b| i64::from(i32::from_le_bytes(b.try_into().unwrap()))).collect()
+        }
+        other => panic!("{key}: unexpected dtype {other:?}"),
+    }
+}

@@ -22,17 +22,21 @@ bash client-wasm/build.sh
 CHROMEDRIVER="${CHROMEDRIVER:-/usr/bin/chromedriver}" WASM_BINDGEN_TEST_TIMEOUT=600 \
   wasm-pack test --release --headless --chrome client-wasm
 
+# LeRobot 0.6.1 in its chroot (about 100 s the first time, seconds after): it makes the golden fixtures and
+# loads our exports in the tests.
+lerobot_env="$cache/lerobot-env"
+bash ../shared/tools/lerobot-check/setup.sh "$lerobot_env"
 # LeRobot's own golden fixtures with several cameras of non-square sizes, made again only when their generator
-# changes (about 2 minutes the first time: the chroot, then 7 fixtures).
+# changes (about 2 minutes: 7 fixtures).
 fixtures="$cache/lerobot-fixtures"
 stamp=$(cat tests/lerobot-fixtures/make_fixture.py tests/lerobot-fixtures/make_all.sh | sha256sum | cut -c1-16)
 if [[ "$(cat "$fixtures/.stamp" 2>/dev/null)" != "$stamp" ]]; then
   rm -rf "$fixtures"
-  bash ../shared/tools/lerobot-check/setup.sh "$cache/lerobot-env"
-  LEROBOT_ENV="$cache/lerobot-env" sh tests/lerobot-fixtures/make_all.sh "$fixtures"
+  LEROBOT_ENV="$lerobot_env" sh tests/lerobot-fixtures/make_all.sh "$fixtures"
   echo "$stamp" >"$fixtures/.stamp"
 fi
 
 # Everything native.
 FEDVLA_REQUIRE_BROWSER=1 FEDVLA_REQUIRE_AV1=1 FEDVLA_REQUIRE_FIXTURES=1 FEDVLA_LEROBOT_FIXTURES="$fixtures" \
+  FEDVLA_LEROBOT_ENV="$lerobot_env" \
   cargo test --workspace --locked --features fedvla-server/av1

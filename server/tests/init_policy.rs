@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use fedvla_aggregator::config::RunConfig;
 use fedvla_data::{CameraSpec, ClientShard, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage};
-use fedvla_policy::{PolicyDir, Tokenizer};
+use fedvla_policy::{PolicyDir, StoredDtype, Tokenizer};
 use fedvla_workloads::smolvla::SmolVlaWorkload;
 use fedvla_workloads::workload::Workload;
 
@@ -104,6 +104,59 @@ fn a_checkpoint_without_a_tokenizer_is_refused_by_name() {
         .unwrap();
     let err = SmolVlaWorkload::prepare(&config, &tmp.path().join("shards")).err().expect("no tokenizer");
     assert!(format!("{err:#}").contains("no tokenizer.json"), "{err:#}");
+}
+
+#[test]
+fn a_bf16_export_reloads_within_rounding_and_lerobot_loads_it() {
+    let Some(fixture) = fixture() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    dataset(&data);
+    let run = |dtype: &str| {
+        let config = RunConfig::default()
+            .with_overrides(&format!(
+                "model-size=tiny rollout-episodes=0 dataset={} init-policy={} export-dtype={dtype}",
+                data.display(),
+                fixture.display()
+            ))
+            .unwrap();
+        let workload = SmolVlaWorkload::prepare(&config, &tmp.path().join(format!("shards_{dtype}"))).unwrap();
+        let out = tmp.path().join(format!("round_0_{dtype}"));
+        let global = workload.initial_model().unwrap();
+        for exporter in workload.exporters() {
+            exporter.export(0, &global, &config, &out).unwrap();
+        }
+        PolicyDir::load(&out.join("policy")).unwrap()
+    };
+    // The fixture is f32, so `auto` keeps f32; `bf16` asks for half the bytes.
+    assert_eq!(run("auto").dtype, StoredDtype::F32);
+    let bf16 = run("bf16");
+    assert_eq!(bf16.dtype, StoredDtype::Bf16);
+    let original = PolicyDir::load(&fixture).unwrap();
+    for (key, tensor) in &original.weights {
+        for (stored, exact) in bf16.weights[key].data.iter().zip(&tensor.data) {
+            assert!((stored - exact).abs() <= exact.abs() * 2f32.powi(-8), "{key}: {exact} exported as {stored}");
+        }
+    }
+
+    // LeRobot 0.6.1 itself loads the bf16 export and acts with it (the checker's chroot, as tests/run.sh sets).
+    let Ok(env) = std::env::var("FEDVLA_LEROBOT_ENV") else {
+        eprintln!("SKIPPED: FEDVLA_LEROBOT_ENV not set; LeRobot's load of the bf16 export not checked");
+        return;
+    };
+    // Canonical: the chroot binds host directories at the same paths.
+    let tools = std::fs::canonicalize(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/tools/lerobot-check"))
+        .expect("../shared/tools/lerobot-check beside the checkout");
+    let policy = tmp.path().join("round_0_bf16/policy");
+    let output = std::process::Command::new("bash")
+        .arg(tools.join("run.sh"))
+        .arg(&env)
+        .args(["python3", &tools.join("check_policy.py").display().to_string(), &policy.display().to_string()])
+        .env("HOSTDIR", tmp.path())
+        .output()
+        .expect("running the LeRobot checker");
+    let log = format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
+    assert!(output.status.success(), "LeRobot did not load the bf16 export:\n{log}");
 }
 
 fn safetensors_i64(path: &Path, key: &str) -> Vec<i64> {

@@ -51,6 +51,16 @@ pub enum Partitioning {
     ByEpisode,
 }
 
+/// The dtype of each round's exported `model.safetensors`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ExportDtype {
+    /// That of the `init-policy` checkpoint (bf16 for LeRobot's `smolvla_base`), f32 from random weights.
+    Auto,
+    F32,
+    Bf16,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields)]
 pub struct RunConfig {
@@ -74,6 +84,7 @@ pub struct RunConfig {
     pub partitioning: Partitioning,
     pub model_size: String,
     pub init_policy: String,
+    pub export_dtype: ExportDtype,
     pub freeze_vision_encoder: bool,
     pub train_expert_only: bool,
     pub image_size: usize,

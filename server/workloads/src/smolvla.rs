@@ -21,10 +21,12 @@ use fedvla_policy::config::Feature;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes};
-use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, Tokenizer, WeightMap, WordTokenizer};
+use fedvla_policy::{
+    FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap, WordTokenizer,
+};
 use fedvla_sim::TASK;
 
-use fedvla_aggregator::config::{EMBEDDED_DATASET, Partitioning, RunConfig, WorkloadKind};
+use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
 use fedvla_aggregator::records::SimFigures;
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
 use fedvla_aggregator::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
@@ -43,6 +45,8 @@ pub struct SmolVlaWorkload {
     weights: WeightMap,
     stats: NormStats,
     tokenizer: RunTokenizer,
+    /// What every round's export stores its tensors in.
+    export_dtype: StoredDtype,
     client_shards: Vec<ShardOffer>,
     server_shard: PathBuf,
     /// Every client's training episodes in one shard: what the centralized baseline trains on.
@@ -332,6 +336,11 @@ impl SmolVlaWorkload {
                 .context("building the pooled training shard")?;
         }
         bar.finish_and_clear();
+        let export_dtype = match (config.export_dtype, &init) {
+            (ExportDtype::F32, _) | (ExportDtype::Auto, None) => StoredDtype::F32,
+            (ExportDtype::Bf16, _) => StoredDtype::Bf16,
+            (ExportDtype::Auto, Some(policy)) => policy.dtype,
+        };
         let weights = match init {
             None => init_random(&cfg.param_specs(), config.seed),
             Some(policy) => {
@@ -349,6 +358,7 @@ impl SmolVlaWorkload {
             cfg,
             weights,
             tokenizer,
+            export_dtype,
             client_shards,
             server_shard,
             pooled_shard,
@@ -444,6 +454,7 @@ struct LeRobotExport {
     frozen: Arc<WeightMap>,
     stats: NormStats,
     tokenizer: RunTokenizer,
+    dtype: StoredDtype,
 }
 
 impl ModelExporter for LeRobotExport {
@@ -456,7 +467,7 @@ impl ModelExporter for LeRobotExport {
     ) -> Result<Option<SimFigures>, BoxError> {
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
-        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, self.tokenizer.backbone())?;
+        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, self.tokenizer.backbone(), self.dtype)?;
         Ok(None)
     }
 }
@@ -487,6 +498,7 @@ impl Workload for SmolVlaWorkload {
                 frozen: Arc::clone(&frozen),
                 stats: self.stats.clone(),
                 tokenizer: self.tokenizer.clone(),
+                dtype: self.export_dtype,
             }),
             Box::new(SimRollouts {
                 cfg: self.cfg.clone(),

@@ -31,4 +31,4 @@ pub use policy_dir::PolicyDir;
 pub use smolvla::SmolVla;
 pub use tokenizer::{Tokenizer, WordTokenizer};
 pub use train::{CosineWarmup, StepReport, Trainer};
-pub use weights::{HostTensor, WeightMap};
+pub use weights::{HostTensor, StoredDtype, WeightMap};

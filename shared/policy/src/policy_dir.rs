@@ -10,7 +10,7 @@ use crate::config::{SmolVlaConfig, VlmConfig};
 use crate::error::PolicyError;
 use crate::normalize::NormStats;
 use crate::tokenizer::{Tokenizer, WordTokenizer};
-use crate::weights::{WeightMap, check_keys, read_safetensors, write_safetensors};
+use crate::weights::{StoredDtype, WeightMap, check_keys, read_safetensors, write_safetensors_as};
 
 /// A policy read from disk.
 #[derive(Debug, Clone)]
@@ -20,6 +20,8 @@ pub struct PolicyDir {
     pub stats: Option<NormStats>,
     /// The backbone folder (config + tokenizer) when one is available locally.
     pub vlm_dir: Option<PathBuf>,
+    /// What `model.safetensors` stores (the weights above are f32 whatever it is).
+    pub dtype: StoredDtype,
 }
 
 fn read_json(path: &Path) -> Result<Value, PolicyError> {
@@ -61,10 +63,11 @@ impl PolicyDir {
         let cfg = read_config(dir)?;
         let model_path = dir.join("model.safetensors");
         let weights = read_safetensors(&model_path)?;
+        let dtype = StoredDtype::of_file(&model_path)?;
         check_keys(&cfg.param_specs(), &weights, &model_path.display().to_string())?;
         let stats = NormStats::read_policy_dir(dir)?;
         let vlm_dir = find_vlm_dir(dir, &cfg.vlm_model_name);
-        Ok(Self { cfg, weights, stats, vlm_dir })
+        Ok(Self { cfg, weights, stats, vlm_dir, dtype })
     }
 
     /// The tokenizer of this policy's backbone folder, when one is available locally.
@@ -87,14 +90,15 @@ pub enum Backbone<'a> {
     CopyFrom(&'a Path),
 }
 
-/// Writes a LeRobot-loadable policy directory. Every file goes through a temporary name and a
-/// rename, so an interrupted export never leaves a half-written checkpoint behind.
+/// Writes a LeRobot-loadable policy directory, `model.safetensors` in `dtype`. Every file goes through a
+/// temporary name and a rename, so an interrupted export never leaves a half-written checkpoint behind.
 pub fn export(
     dir: &Path,
     cfg: &SmolVlaConfig,
     weights: &WeightMap,
     stats: &NormStats,
     backbone: Backbone<'_>,
+    dtype: StoredDtype,
 ) -> Result<(), PolicyError> {
     check_keys(&cfg.param_specs(), weights, "export")?;
     std::fs::create_dir_all(dir).map_err(|e| PolicyError::io(dir, e))?;
@@ -126,7 +130,7 @@ pub fn export(
         }
     }
     write_json(&dir.join("config.json"), &cfg.to_lerobot_json())?;
-    write_safetensors(&dir.join("model.safetensors"), weights)?;
+    write_safetensors_as(&dir.join("model.safetensors"), weights, dtype)?;
     stats.write_policy_dir(dir, &cfg)
 }
 
@@ -176,8 +180,9 @@ mod tests {
         let cfg = SmolVlaConfig::tiny();
         let weights = init_random(&cfg.param_specs(), 7);
         let tok = WordTokenizer::from_texts(["put the cube in the bowl"]);
-        export(&dir, &cfg, &weights, &stats(), Backbone::Generated(&tok)).unwrap();
+        export(&dir, &cfg, &weights, &stats(), Backbone::Generated(&tok), StoredDtype::F32).unwrap();
         let loaded = PolicyDir::load(&dir).unwrap();
+        assert_eq!(loaded.dtype, StoredDtype::F32);
         assert_eq!(loaded.weights.len(), weights.len());
         for (k, t) in &weights {
             let l = &loaded.weights[k];
@@ -188,6 +193,29 @@ mod tests {
         assert_eq!(loaded.cfg.param_specs(), cfg.param_specs());
         let Some(Tokenizer::Word(read_back)) = loaded.tokenizer().unwrap() else { panic!("word tokenizer expected") };
         assert_eq!(read_back, tok);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_bf16_export_reloads_within_bf16_rounding_at_half_the_bytes() {
+        let dir = std::env::temp_dir().join(format!("fedvla-export-bf16-{}", std::process::id()));
+        let (f32_dir, bf16_dir) = (dir.join("f32"), dir.join("bf16"));
+        let cfg = SmolVlaConfig::tiny();
+        let weights = init_random(&cfg.param_specs(), 7);
+        let tok = WordTokenizer::from_texts(["put the cube in the bowl"]);
+        export(&f32_dir, &cfg, &weights, &stats(), Backbone::Generated(&tok), StoredDtype::F32).unwrap();
+        export(&bf16_dir, &cfg, &weights, &stats(), Backbone::Generated(&tok), StoredDtype::Bf16).unwrap();
+        let loaded = PolicyDir::load(&bf16_dir).unwrap();
+        assert_eq!(loaded.dtype, StoredDtype::Bf16);
+        for (k, t) in &weights {
+            for (a, b) in loaded.weights[k].data.iter().zip(&t.data) {
+                // bf16 keeps 8 significant bits: round to nearest is within half a unit in the last place.
+                assert!((a - b).abs() <= b.abs() * 2f32.powi(-8), "{k}: {b} stored as {a}");
+            }
+        }
+        let size = |d: &Path| std::fs::metadata(d.join("model.safetensors")).unwrap().len() as f64;
+        let ratio = size(&bf16_dir) / size(&f32_dir);
+        assert!((0.49..0.52).contains(&ratio), "bf16 file is {ratio} of the f32 one");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

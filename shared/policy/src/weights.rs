@@ -88,22 +88,84 @@ pub fn decode_floats(dtype: Dtype, bytes: &[u8]) -> Option<Vec<f32>> {
     })
 }
 
+/// The dtype a checkpoint's tensors are stored in: f32, or bf16 (LeRobot's `smolvla_base` is bf16, half the bytes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum StoredDtype {
+    #[default]
+    F32,
+    Bf16,
+}
+
+impl StoredDtype {
+    fn safetensors(self) -> Dtype {
+        match self {
+            Self::F32 => Dtype::F32,
+            Self::Bf16 => Dtype::BF16,
+        }
+    }
+
+    fn encode(self, values: &[f32]) -> Vec<u8> {
+        match self {
+            Self::F32 => values.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            // Round to nearest even, as torch's `.to(torch.bfloat16)` does.
+            Self::Bf16 => values.iter().flat_map(|&x| half::bf16::from_f32(x).to_le_bytes()).collect(),
+        }
+    }
+
+    /// What a safetensors file stores: bf16 when every floating tensor is bf16, else f32. Reads the header only.
+    pub fn of_file(path: &Path) -> Result<Self, PolicyError> {
+        use std::io::Read;
+        let bad = |message: String| PolicyError::Safetensors { path: path.into(), message };
+        let mut file = std::fs::File::open(path).map_err(|e| PolicyError::io(path, e))?;
+        let mut len = [0u8; 8];
+        file.read_exact(&mut len).map_err(|e| PolicyError::io(path, e))?;
+        let len = u64::from_le_bytes(len);
+        if len > 100 << 20 {
+            return Err(bad(format!("header of {len} bytes")));
+        }
+        let mut header = vec![0u8; len as usize];
+        file.read_exact(&mut header).map_err(|e| PolicyError::io(path, e))?;
+        /// One tensor's entry of the header (`__metadata__` has no dtype and is skipped).
+        #[derive(serde::Deserialize)]
+        struct Entry {
+            dtype: Option<String>,
+        }
+        let entries: BTreeMap<String, Entry> =
+            serde_json::from_slice(&header).map_err(|e| bad(format!("header: {e}")))?;
+        let floats: Vec<&str> = entries
+            .values()
+            .filter_map(|e| e.dtype.as_deref())
+            .filter(|d| matches!(*d, "F32" | "BF16" | "F16" | "F64"))
+            .collect();
+        Ok(if !floats.is_empty() && floats.iter().all(|d| *d == "BF16") { Self::Bf16 } else { Self::F32 })
+    }
+}
+
 /// Writes tensors as F32 safetensors (the dtype LeRobot's `save_pretrained` uses for fp32 models), atomically,
 /// so a crash never leaves a half-written checkpoint.
 pub fn write_safetensors(path: &Path, tensors: &WeightMap) -> Result<(), PolicyError> {
-    fedvla_fs::write_atomic(path, &safetensors_bytes(tensors)?).map_err(|e| PolicyError::io(path, e))
+    write_safetensors_as(path, tensors, StoredDtype::F32)
+}
+
+/// [`write_safetensors`] in `dtype`.
+pub fn write_safetensors_as(path: &Path, tensors: &WeightMap, dtype: StoredDtype) -> Result<(), PolicyError> {
+    fedvla_fs::write_atomic(path, &safetensors_bytes_as(tensors, dtype)?).map_err(|e| PolicyError::io(path, e))
 }
 
 /// Serialises tensors as F32 safetensors bytes.
 pub fn safetensors_bytes(tensors: &WeightMap) -> Result<Vec<u8>, PolicyError> {
-    let raw: Vec<(String, Vec<u8>, Vec<usize>)> = tensors
-        .iter()
-        .map(|(k, t)| (k.clone(), t.data.iter().flat_map(|x| x.to_le_bytes()).collect(), t.shape.clone()))
-        .collect();
+    safetensors_bytes_as(tensors, StoredDtype::F32)
+}
+
+/// Serialises tensors as safetensors bytes of `dtype`.
+pub fn safetensors_bytes_as(tensors: &WeightMap, dtype: StoredDtype) -> Result<Vec<u8>, PolicyError> {
+    let raw: Vec<(String, Vec<u8>, Vec<usize>)> =
+        tensors.iter().map(|(k, t)| (k.clone(), dtype.encode(&t.data), t.shape.clone())).collect();
     let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = raw
         .iter()
         .map(|(k, b, s)| {
-            let view = safetensors::tensor::TensorView::new(Dtype::F32, s.clone(), b).expect("consistent tensor view");
+            let view = safetensors::tensor::TensorView::new(dtype.safetensors(), s.clone(), b)
+                .expect("consistent tensor view");
             (k.clone(), view)
         })
         .collect();

@@ -65,6 +65,7 @@ pub fn federated(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::Res
         WorkloadKind::Linreg => serve_clients(&LinRegWorkload::from_config(&config), config, run_dir, bars),
         WorkloadKind::Smolvla => {
             let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
+            bars.println(workload.inputs().to_owned());
             serve_clients(&workload, config, run_dir, bars)
         }
     }
@@ -189,6 +190,7 @@ fn spawn_client(url: String, shard: usize, bar: ProgressBar) -> oneshot::Receive
 pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::Result<()> {
     anyhow::ensure!(config.workload == WorkloadKind::Smolvla, "the centralized baseline trains the smolvla workload");
     let workload = SmolVlaWorkload::prepare_centralized(&config, &run_dir.path().join(SHARDS_DIR))?;
+    bars.println(workload.inputs().to_owned());
     let mut trainer = workload.centralized_trainer().map_err(boxed)?;
     let mut evaluator = workload.evaluator().map_err(boxed)?;
     let mut exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];

@@ -56,6 +56,17 @@ fn a_run_from_a_checkpoint_uses_the_checkpoints_tokenizer_everywhere() {
         ))
         .unwrap();
     let workload = SmolVlaWorkload::prepare(&config, &tmp.path().join("shards")).expect("prepare from the fixture");
+    // What the run prints first: the cameras in the order the policy reads them, the features, the tokenizer.
+    let inputs = workload.inputs();
+    for line in [
+        "camera 0: observation.images.top (32x32, resized with padding to 32x32)",
+        "camera 1: observation.images.wrist",
+        "observation.state: [\"shoulder_pan.pos\"",
+        "normalised with mean [",
+        "tokenizer: the checkpoint's",
+    ] {
+        assert!(inputs.contains(line), "{line:?} missing from:\n{inputs}");
+    }
 
     // The fixture's tokenizer, and the ids LeRobot itself recorded for this task.
     let checkpoint = Tokenizer::read(&fixture.join("vlm/tokenizer.json")).unwrap();

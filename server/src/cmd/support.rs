@@ -48,6 +48,7 @@ pub fn workload_parts(config: RunConfig, run_dir: RunDir) -> anyhow::Result<Serv
         WorkloadKind::Linreg => server_parts(&LinRegWorkload::from_config(&config), config, run_dir).map_err(boxed),
         WorkloadKind::Smolvla => {
             let workload = SmolVlaWorkload::prepare(&config, &run_dir.path().join(SHARDS_DIR))?;
+            println!("{}", workload.inputs());
             server_parts(&workload, config, run_dir).map_err(boxed)
         }
     }

@@ -47,6 +47,8 @@ pub struct SmolVlaWorkload {
     tokenizer: RunTokenizer,
     /// What every round's export stores its tensors in.
     export_dtype: StoredDtype,
+    /// What the policy is fed, in words (see [`SmolVlaWorkload::inputs`]).
+    inputs: String,
     client_shards: Vec<ShardOffer>,
     server_shard: PathBuf,
     /// Every client's training episodes in one shard: what the centralized baseline trains on.
@@ -217,6 +219,55 @@ fn policy_config(config: &RunConfig, dataset: &LeRobotDataset) -> anyhow::Result
     Ok(cfg)
 }
 
+fn describe_inputs(
+    root: &Path,
+    dataset: &LeRobotDataset,
+    cfg: &SmolVlaConfig,
+    stats: &NormStats,
+    tokenizer: &RunTokenizer,
+) -> String {
+    use std::fmt::Write;
+    let features = &dataset.info().features;
+    let (w, h) = cfg.resize_imgs_with_padding;
+    let mut out = format!(
+        "dataset {}: {} episodes, {} frames at {} fps, tasks {:?}\n",
+        root.display(),
+        dataset.episodes().len(),
+        dataset.len(),
+        dataset.fps(),
+        dataset.tasks()
+    );
+    let cameras = cfg.input_features.iter().filter(|f| f.kind == "VISUAL");
+    for (i, camera) in cameras.enumerate() {
+        let _ = writeln!(
+            out,
+            "  camera {i}: {} ({}x{}, resized with padding to {w}x{h})",
+            camera.name,
+            camera.shape.get(2).copied().unwrap_or(0),
+            camera.shape.get(1).copied().unwrap_or(0)
+        );
+    }
+    for key in ["observation.state", "action"] {
+        let names = features.get(key).map(|f| f.names.to_string()).unwrap_or_default();
+        let _ = writeln!(out, "  {key}: {names}");
+        if let Ok(s) = stats.get(key) {
+            let fmt = |v: &[f32]| v.iter().map(|x| format!("{x:.3}")).collect::<Vec<_>>().join(", ");
+            let _ = writeln!(out, "    normalised with mean [{}], std [{}]", fmt(&s.mean), fmt(&s.std));
+        }
+    }
+    let _ = write!(
+        out,
+        "  tokenizer: {}",
+        match tokenizer {
+            RunTokenizer::Generated(word) =>
+                format!("word-level, of the dataset's task strings ({} ids)", word.vocab_size()),
+            RunTokenizer::Checkpoint { backbone, .. } =>
+                format!("the checkpoint's, {}/tokenizer.json", backbone.display()),
+        }
+    );
+    out
+}
+
 fn norm_stats(dataset: &LeRobotDataset) -> anyhow::Result<NormStats> {
     let stats = dataset.stats().context("the dataset has no meta/stats.json")?;
     let mut out = NormStats::default();
@@ -353,8 +404,10 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
+        let stats = norm_stats(&dataset)?;
         Ok(Self {
-            stats: norm_stats(&dataset)?,
+            inputs: describe_inputs(&root, &dataset, &cfg, &stats, &tokenizer),
+            stats,
             cfg,
             weights,
             tokenizer,
@@ -376,6 +429,13 @@ impl SmolVlaWorkload {
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
         let shard = ClientShard::read(path)?;
         Ok(ShardExamples::new(shard, &self.cfg)?)
+    }
+
+    /// What the policy is fed, for a robot owner to check at the start of a run: the dataset, the cameras in
+    /// the order the policy reads them, the state and action features with their names, the normalisation
+    /// statistics, and the tokenizer.
+    pub fn inputs(&self) -> &str {
+        &self.inputs
     }
 
     pub fn policy_config(&self) -> &SmolVlaConfig {

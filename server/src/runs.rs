@@ -26,27 +26,39 @@ use crate::native_client;
 
 /// Where a run shows its progress bars (hidden inside an experiment, which has one bar for its grid).
 #[derive(Clone)]
-pub struct Bars(MultiProgress);
+pub struct Bars {
+    multi: MultiProgress,
+    /// Inside an experiment: lines go nowhere either.
+    quiet: bool,
+}
 
 impl Bars {
     pub fn terminal() -> Self {
-        Self(MultiProgress::new())
+        Self { multi: MultiProgress::new(), quiet: false }
     }
 
     pub fn hidden() -> Self {
-        Self(MultiProgress::with_draw_target(ProgressDrawTarget::hidden()))
+        Self { multi: MultiProgress::with_draw_target(ProgressDrawTarget::hidden()), quiet: true }
     }
 
     fn bar(&self, len: u64, prefix: String) -> anyhow::Result<ProgressBar> {
-        let bar = self.0.add(ProgressBar::new(len));
+        let bar = self.multi.add(ProgressBar::new(len));
         bar.set_style(ProgressStyle::with_template("{prefix:>10} [{bar:30}] {pos}/{len} {msg}")?);
         bar.set_prefix(prefix);
         Ok(bar)
     }
 
-    /// Prints a line above the bars (or nowhere, when hidden).
+    /// Prints a line above the bars; to plain stdout where there is no terminal to draw bars on (a log, CI),
+    /// nowhere inside an experiment.
     fn println(&self, line: String) {
-        self.0.println(line).ok();
+        if self.quiet {
+            return;
+        }
+        if self.multi.is_hidden() {
+            println!("{line}");
+        } else {
+            self.multi.println(line).ok();
+        }
     }
 }
 

@@ -52,3 +52,42 @@ async fn killed_after_round_one_then_resumed() {
     let loss = |i: usize| metrics(&dir)[i]["global"]["heldout_loss"].as_f64().unwrap();
     assert!(loss(2) < loss(1), "round 2 built on round 1");
 }
+
+/// A strategy with state (FedAdam's moments, FedAvgM's velocity) killed during round 2 of 3 and resumed ends on
+/// the model of an uninterrupted run: its state is saved with each round and taken up again on resume.
+#[tokio::test]
+async fn a_stateful_strategy_resumed_equals_the_uninterrupted_run() {
+    for strategy in ["fedadam server-lr=0.05", "fedavgm server-lr=1 server-momentum=0.5"] {
+        let cfg = config(&format!("num-server-rounds=3 strategy={strategy}"));
+        let uninterrupted = {
+            let base = tempfile::tempdir().unwrap();
+            let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+            let handle = start(cfg.clone(), run_dir.clone()).await;
+            let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
+            assert_eq!(handle.finish().await.unwrap().completed_rounds, 3);
+            for (task, _) in clients {
+                task.await.unwrap().unwrap();
+            }
+            run_dir.load_model(3).unwrap()
+        };
+
+        let base = tempfile::tempdir().unwrap();
+        let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+        let dir = run_dir.path().to_owned();
+        let handle = start(cfg.clone(), run_dir).await;
+        let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, Some(2))).collect();
+        wait_status(&handle, |s| s.completed_rounds == 1).await;
+        handle.kill();
+        for (task, _) in &clients {
+            task.abort();
+        }
+        let (run_dir, cfg) = RunDir::open(&dir).unwrap();
+        let handle = start(cfg, run_dir.clone()).await;
+        let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
+        assert_eq!(handle.finish().await.unwrap().completed_rounds, 3);
+        for (task, _) in clients {
+            task.await.unwrap().unwrap();
+        }
+        assert_close(&run_dir.load_model(3).unwrap(), &uninterrupted, 1e-6);
+    }
+}

@@ -34,6 +34,18 @@ pub enum LrScheduleKind {
 #[serde(rename_all = "kebab-case")]
 pub enum StrategyKind {
     Fedavg,
+    /// FedAvg with the clients' proximal term (`proximal-mu`).
+    Fedprox,
+    /// FedAvg plus server momentum (`server-lr`, `server-momentum`).
+    Fedavgm,
+    /// Adaptive server optimizers of Reddi et al. 2021 (`server-lr`, `server-beta1`, `server-beta2`, `server-tau`).
+    Fedadagrad,
+    Fedyogi,
+    Fedadam,
+    /// Coordinate-wise median of the clients' models.
+    Median,
+    /// Coordinate-wise mean without the `trim-beta` fraction of largest and of smallest values.
+    TrimmedMean,
 }
 
 pub use fedvla_federation::WorkloadKind;
@@ -76,6 +88,13 @@ pub struct RunConfig {
     pub lr_final_fraction: f64,
     pub seed: u64,
     pub strategy: StrategyKind,
+    pub proximal_mu: f64,
+    pub server_lr: f64,
+    pub server_momentum: f64,
+    pub server_beta1: f64,
+    pub server_beta2: f64,
+    pub server_tau: f64,
+    pub trim_beta: f64,
     pub workload: WorkloadKind,
     pub dataset: String,
     pub dataset_episodes: usize,
@@ -208,6 +227,28 @@ impl RunConfig {
                 "lr-warmup-fraction must be in [0, 1) and lr-final-fraction in [0, 1], got {} and {}",
                 self.lr_warmup_fraction, self.lr_final_fraction
             ));
+        }
+        if !(self.proximal_mu.is_finite() && self.proximal_mu >= 0.0) {
+            return fail(format!("proximal-mu must be a non-negative number, got {}", self.proximal_mu));
+        }
+        if !(self.server_lr.is_finite() && self.server_lr > 0.0 && self.server_tau.is_finite() && self.server_tau > 0.0)
+        {
+            return fail(format!(
+                "server-lr and server-tau must be positive, got {} and {}",
+                self.server_lr, self.server_tau
+            ));
+        }
+        for (key, value) in [
+            ("server-momentum", self.server_momentum),
+            ("server-beta1", self.server_beta1),
+            ("server-beta2", self.server_beta2),
+        ] {
+            if !(0.0..1.0).contains(&value) {
+                return fail(format!("{key} must be in [0, 1), got {value}"));
+            }
+        }
+        if !(0.0..0.5).contains(&self.trim_beta) {
+            return fail(format!("trim-beta must be in [0, 0.5), got {}", self.trim_beta));
         }
         if !(self.dataset_action_noise.is_finite() && (0.0..=20.0).contains(&self.dataset_action_noise)) {
             return fail(format!("dataset-action-noise must be in [0, 20] degrees, got {}", self.dataset_action_noise));

@@ -13,7 +13,7 @@ use fedvla_aggregator::parts::ServerParts;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_app::server::{self, ServerHandle};
 use fedvla_federation::{
-    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, FedAvg, LocalTrainer,
+    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, LocalTrainer,
     NamedTensors, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage, TrainOutput, run_client,
 };
 use fedvla_server::native_client::NativeTransport;
@@ -41,9 +41,9 @@ pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
     let parts = ServerParts {
         initial: linreg::initial_model(config.seed),
         volunteer: LinRegWorkload::from_config(&config).volunteer_offer().unwrap(),
+        strategy: fedvla_workloads::workload::strategy(&config),
         config,
         run_dir,
-        strategy: Box::new(FedAvg),
         evaluator: Box::new(LinRegEvaluator::default()),
         exporters: Vec::new(),
     };

@@ -6,7 +6,10 @@ use fedvla_aggregator::config::{RunConfig, StrategyKind};
 use fedvla_aggregator::parts::ServerParts;
 use fedvla_aggregator::registry::VolunteerOffer;
 use fedvla_aggregator::run_dir::{ModelExporter, RunDir};
-use fedvla_federation::{BoxError, Evaluator, FedAvg, NamedTensors, Strategy};
+use fedvla_federation::{
+    Adaptivity, BoxError, Evaluator, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg, NamedTensors,
+    Strategy,
+};
 
 pub trait Workload {
     fn initial_model(&self) -> Result<NamedTensors, BoxError>;
@@ -23,16 +26,28 @@ pub trait Workload {
 /// The server side of `workload` under `config`: its initial model, evaluator, exporters and volunteer offer, and
 /// the configured strategy.
 pub fn server_parts(workload: &impl Workload, config: RunConfig, run_dir: RunDir) -> Result<ServerParts, BoxError> {
-    let strategy: Box<dyn Strategy> = match config.strategy {
-        StrategyKind::Fedavg => Box::new(FedAvg),
-    };
     Ok(ServerParts {
         initial: workload.initial_model()?,
         evaluator: workload.evaluator()?,
         exporters: workload.exporters(),
         volunteer: workload.volunteer_offer()?,
-        strategy,
+        strategy: strategy(&config),
         config,
         run_dir,
     })
+}
+
+/// The configured aggregation strategy, with its parameters.
+pub fn strategy(c: &RunConfig) -> Box<dyn Strategy> {
+    let adaptive = |rule| Box::new(FedAdaptive::new(rule, c.server_lr, c.server_beta1, c.server_beta2, c.server_tau));
+    match c.strategy {
+        StrategyKind::Fedavg => Box::new(FedAvg),
+        StrategyKind::Fedprox => Box::new(FedProx { mu: c.proximal_mu }),
+        StrategyKind::Fedavgm => Box::new(FedAvgM::new(c.server_lr, c.server_momentum)),
+        StrategyKind::Fedadagrad => adaptive(Adaptivity::Adagrad),
+        StrategyKind::Fedyogi => adaptive(Adaptivity::Yogi),
+        StrategyKind::Fedadam => adaptive(Adaptivity::Adam),
+        StrategyKind::Median => Box::new(FedMedian),
+        StrategyKind::TrimmedMean => Box::new(FedTrimmedAvg { beta: c.trim_beta }),
+    }
 }

@@ -24,5 +24,8 @@ pub use protocol::{
     RoundTask, ServerMessage, StrategyParams, VolunteerSetup, WorkloadKind, routes,
 };
 pub use seed::{fnv1a, mix};
-pub use strategy::{Aggregation, FedAvg, Step, Strategy, WeightedMean, aggregate};
+pub use strategy::{
+    Adaptivity, Aggregation, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg, Step, Strategy,
+    WeightedMean, aggregate,
+};
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

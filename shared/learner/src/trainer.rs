@@ -90,6 +90,8 @@ impl SmolVlaTrainer {
         if rows.is_empty() {
             return Err("this client's shard has no training episodes".into());
         }
+        // FedProx: the round's steps are pulled towards the global model they start from (mu 0: plain FedAvg).
+        self.trainer.set_proximal(task.strategy.proximal_mu);
         let chunk = self.trainer.model.cfg.chunk_size;
         let batch_size = (task.batch_size as usize).clamp(1, rows.len());
         let mut rng = StdRng::seed_from_u64(task.seed);

@@ -89,6 +89,14 @@ pub struct Trainer {
     step: usize,
     rng: StdRng,
     device: Device,
+    proximal: Option<Proximal>,
+}
+
+/// FedProx's proximal term `mu/2 * ||w - anchor||^2` over the trainable tensors (Li et al. 2020), the anchor being
+/// the global model a round started from: it keeps a client's local steps near it on non-IID data.
+struct Proximal {
+    mu: f64,
+    anchor: BTreeMap<String, Tensor<1>>,
 }
 
 impl Trainer {
@@ -114,6 +122,7 @@ impl Trainer {
             step: 0,
             rng: StdRng::seed_from_u64(seed),
             device: device.clone(),
+            proximal: None,
         })
     }
 
@@ -155,6 +164,16 @@ impl Trainer {
         self.moments.clear();
         self.step = 0;
         Ok(())
+    }
+
+    /// From now on every step's gradient carries FedProx's proximal term `mu/2 * ||w - w0||^2`, `w0` being the
+    /// trainable tensors as they are now (the round's global model); `mu` = 0 removes it. The reported loss stays
+    /// the flow-matching loss, comparable with and without the term.
+    pub fn set_proximal(&mut self, mu: f64) {
+        self.proximal = (mu > 0.0).then(|| Proximal {
+            mu,
+            anchor: self.trainable.iter().map(|(k, (leaf, _))| (k.clone(), leaf.clone().inner())).collect(),
+        });
     }
 
     /// Forward pass with given noise and time (no update).
@@ -230,8 +249,15 @@ impl Trainer {
     ) -> Result<(Tensor<1>, BTreeMap<String, Tensor<1>>), PolicyError> {
         let loss = self.forward(batch, noise, time)?.loss;
         let grads = loss.backward();
-        let grads =
+        let mut grads: BTreeMap<String, Tensor<1>> =
             self.trainable.iter().filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g))).collect();
+        if let Some(Proximal { mu, anchor }) = &self.proximal {
+            // d/dw of mu/2 * ||w - w0||^2.
+            for (name, grad) in &mut grads {
+                let w = self.trainable[name].0.clone().inner();
+                *grad = grad.clone() + (w - anchor[name].clone()) * *mu;
+            }
+        }
         Ok((loss.inner(), grads))
     }
 

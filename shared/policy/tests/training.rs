@@ -34,3 +34,36 @@ fn tiny_model_loss_drops_tenfold_in_200_steps_and_frozen_weights_stay_bit_identi
         assert!(before.data.iter().zip(&after.data).all(|(a, b)| a.to_bits() == b.to_bits()), "{} moved", spec.name);
     }
 }
+
+/// FedProx: with the proximal term the gradient of every trainable tensor gains exactly `mu * (w - w0)`, `w0`
+/// the weights when it was set; without it (mu = 0) nothing changes.
+#[test]
+fn the_proximal_term_adds_mu_times_the_distance_from_the_anchor_to_every_gradient() {
+    let cfg = SmolVlaConfig::tiny();
+    let anchor = init_random(&cfg.param_specs(), 1);
+    let moved = init_random(&cfg.param_specs(), 2);
+    let trainable: fedvla_policy::WeightMap = {
+        let names: std::collections::BTreeSet<String> =
+            cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
+        moved.into_iter().filter(|(k, _)| names.contains(k)).collect()
+    };
+    let device = Device::flex().autodiff();
+    let batch = Batch::random(&cfg, 2, 3);
+    let gradients = |mu: f64| {
+        let mut trainer = Trainer::new(&cfg, &anchor, &device, 5).unwrap();
+        trainer.set_proximal(mu);
+        trainer.set_trainable_weights(&trainable).unwrap();
+        let (noise, time) = trainer.sample_noise_and_time(2);
+        trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap().1
+    };
+    let (plain, off, mu) = (gradients(0.0), gradients(0.0), 0.25);
+    let proximal = gradients(mu);
+    assert_eq!(plain, off);
+    for (name, g) in &plain {
+        let (w, w0) = (&trainable[name].data, &anchor[name].data);
+        for (i, (with, without)) in proximal[name].data.iter().zip(&g.data).enumerate() {
+            let expected = without + (mu as f32) * (w[i] - w0[i]);
+            assert!((with - expected).abs() <= 1e-5 * (1.0 + expected.abs()), "{name}[{i}]: {with} != {expected}");
+        }
+    }
+}

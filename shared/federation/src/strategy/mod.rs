@@ -5,6 +5,12 @@
 //! round (server moments, control variates, a clipping norm) changes only when the server commits the round, so
 //! a round retried or skipped leaves it as it was, and it is saved with each round for `--resume`.
 
+mod robust;
+mod server_opt;
+
+pub use robust::{FedMedian, FedTrimmedAvg};
+pub use server_opt::{Adaptivity, FedAdaptive, FedAvgM};
+
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
@@ -80,6 +86,23 @@ pub struct FedAvg;
 impl Strategy for FedAvg {
     fn client_params(&self) -> StrategyParams {
         StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 }
+    }
+
+    fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
+        Box::new(WeightedMean::new(global))
+    }
+}
+
+/// FedProx (Li et al. 2020): FedAvg's aggregation, with clients adding `mu/2 * ||w - w_global||^2` to their
+/// local loss (the SmolVLA trainer and linreg do, from the task's [`StrategyParams::proximal_mu`]).
+#[derive(Debug, Clone, Copy)]
+pub struct FedProx {
+    pub mu: f64,
+}
+
+impl Strategy for FedProx {
+    fn client_params(&self) -> StrategyParams {
+        StrategyParams { name: "fedprox".into(), proximal_mu: self.mu }
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {

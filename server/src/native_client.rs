@@ -11,6 +11,7 @@ use fedvla_federation::{
 };
 use fedvla_learner::volunteer::{Fetch, fetch_setup, smolvla_volunteer};
 use fedvla_workloads::linreg::LinRegTrainer;
+use fedvla_workloads::sim_eval::FilmedRollouts;
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
@@ -141,8 +142,8 @@ pub async fn volunteer(
         }
         WorkloadKind::Smolvla => {
             let device = Device::flex().autodiff();
-            let mut trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
-            Ok(run_client(&mut transport, &mut trainer, &options, on_event).await?)
+            let trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
+            Ok(run_client(&mut transport, &mut FilmedRollouts(trainer), &options, on_event).await?)
         }
     }
 }

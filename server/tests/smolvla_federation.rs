@@ -7,25 +7,28 @@ use std::sync::{Arc, Mutex};
 
 use burn::tensor::Device;
 use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::records::RolloutResults;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir, TRAINABLE_FILE};
 use fedvla_app::server;
 use fedvla_data::LeRobotDataset;
+use fedvla_federation::RolloutOutput;
 use fedvla_federation::codec::HEADER_LEN;
+use fedvla_federation::protocol::RolloutRequest;
 use fedvla_federation::{
     BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask,
     TrainOutput, routes, run_client,
 };
-use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::volunteer::{fetch_setup, fetch_shard, smolvla_volunteer};
 use fedvla_policy::PolicyDir;
 use fedvla_server::native_client::NativeTransport;
 use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
+use fedvla_workloads::sim_eval::FilmedRollouts;
 use fedvla_workloads::smolvla::SmolVlaWorkload;
 use fedvla_workloads::workload::{Workload, server_parts};
 
 /// Records every update it sends; hangs from round `hang_from_round` on (a client stuck mid-round).
 struct Recording {
-    inner: SmolVlaTrainer,
+    inner: FilmedRollouts,
     updates: Arc<Mutex<Vec<(u64, TrainOutput)>>>,
     hang_from_round: Option<u64>,
 }
@@ -47,6 +50,9 @@ impl LocalTrainer for Recording {
     }
     async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
         self.inner.evaluate().await
+    }
+    async fn rollout(&mut self, request: &RolloutRequest) -> Result<Vec<RolloutOutput>, BoxError> {
+        self.inner.rollout(request).await
     }
 }
 
@@ -115,7 +121,9 @@ fn spawn_clients(
                     let name = format!("client-{shard}");
                     let setup = fetch_setup(&transport, &name, Some(shard)).await.unwrap();
                     let device = Device::flex().autodiff();
-                    let inner = smolvla_volunteer(&transport, &setup, &name, &device, "cpu-flex").await.unwrap();
+                    let inner = FilmedRollouts(
+                        smolvla_volunteer(&transport, &setup, &name, &device, "cpu-flex").await.unwrap(),
+                    );
                     let mut trainer = Recording { inner, updates: recorded, hang_from_round };
                     let options = ClientOptions { name, auth_token: None, shard: Some(shard) };
                     run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
@@ -174,9 +182,18 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
         for c in line["clients"].as_array().unwrap() {
             let update = c["update_bytes"].as_u64().unwrap();
             assert_eq!(update, (payload + frames * HEADER_LEN) as u64, "{c}");
-            // bytes_up counts every round so far: one update each plus a few small JSON messages.
+            // bytes_up counts every round so far: one update each, a few small JSON messages, and the rollout
+            // videos uploaded in the rounds so far.
             let up = c["bytes_up"].as_u64().unwrap();
-            assert!(up >= round as u64 * update && up < round as u64 * (update + 4096), "{c}");
+            let client = c["client_id"].as_u64().unwrap();
+            let videos: u64 = (1..=round as u64)
+                .filter_map(|r| std::fs::read_dir(first.dir.join(format!("evaluate/round_{r}/client_{client}"))).ok())
+                .flatten()
+                .map(|f| f.unwrap().path())
+                .filter(|p| p.extension().is_some_and(|e| e == "mp4"))
+                .map(|p| std::fs::metadata(p).unwrap().len())
+                .sum();
+            assert!(up >= round as u64 * update + videos && up < round as u64 * (update + 4096) + videos, "{c}");
             assert!(update < frozen as u64);
         }
     }
@@ -191,6 +208,20 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
         serde_json::from_str(&std::fs::read_to_string(rollouts.join("results.json")).unwrap()).unwrap();
     assert_eq!(results["episodes"].as_array().unwrap().len(), 1);
     assert!(std::fs::metadata(rollouts.join("episode_0.mp4")).unwrap().len() > 1000);
+    // Native volunteers film their own rollouts too: every client's evaluation in round 1 holds its MP4, on
+    // layouts of its own.
+    let mut seeds = std::collections::BTreeSet::new();
+    for client in std::fs::read_dir(first.dir.join("evaluate/round_1")).unwrap() {
+        let dir = client.unwrap().path();
+        let results: RolloutResults =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("results.json")).unwrap()).unwrap();
+        for episode in &results.episodes {
+            let video = episode.video.as_ref().unwrap_or_else(|| panic!("{}: episode without video", dir.display()));
+            assert!(std::fs::metadata(dir.join(video)).unwrap().len() > 1000, "{}", dir.display());
+            seeds.insert(episode.seed);
+        }
+    }
+    assert_eq!(seeds.len(), 3, "three clients, three distinct layouts");
 
     // The same seed gives a byte-identical global model; another seed does not.
     let model = |run: &Run| std::fs::read(run.dir.join("global_model/round_2").join(TRAINABLE_FILE)).unwrap();

@@ -1,6 +1,7 @@
 //! Evaluation in the SO-100 simulation: roll a policy (or the scripted expert) out over a range of
 //! seeds, film every episode (top and wrist cameras side by side, H.264 mp4) and write
-//! `results.json` ([`RolloutResults`]). Used by `fedvla eval`, by the server after rounds and by experiments.
+//! `results.json` ([`RolloutResults`]). Used by `fedvla eval`, by the server after rounds and by experiments;
+//! [`FilmedRollouts`] films a native volunteer's rollouts the same way.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -10,9 +11,16 @@ use fedvla_aggregator::records::{RolloutResults, VideoError};
 pub use fedvla_aggregator::run_dir::RESULTS_FILE;
 use fedvla_data::RgbImage;
 use fedvla_data::video::{CameraVideoWriter, VideoEncoding};
-use fedvla_federation::RolloutEpisode;
-use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
+use fedvla_federation::protocol::RolloutRequest;
+use fedvla_federation::{
+    BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutEpisode, RolloutOutput, RoundTask,
+    TrainOutput, Video,
+};
+use fedvla_learner::SmolVlaTrainer;
+use fedvla_learner::rollout::{Episode, EpisodeResult, SimPolicy, run_episode};
+use fedvla_learner::trainer::rollout_episode;
 use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, Scene, drive_expert, render};
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
 /// ones no policy was trained on.
@@ -21,6 +29,8 @@ pub const DEFAULT_SEED: u64 = 10_000;
 pub const DEFAULT_MAX_FRAMES: usize = 300;
 /// Width and height of each camera in the videos.
 pub const DEFAULT_VIDEO_SIZE: u32 = 192;
+/// Camera size in the videos of the rounds' rollouts, the server's and native volunteers' (two side by side).
+pub const ROLLOUT_VIDEO_SIZE: u32 = 128;
 
 /// Who acts in the episodes.
 #[derive(Clone, Copy)]
@@ -129,6 +139,61 @@ fn run_expert(seed: u64, max_frames: usize, mut on_frame: impl FnMut(&Scene)) ->
         drive_expert(seed, ExpertEnd::Success, max_frames as u32, ActionNoise::NONE, |scene, _| on_frame(scene));
     on_frame(&scene);
     EpisodeResult { seed, success: scene.success(), length: scene.frame() as usize }
+}
+
+/// The SmolVLA volunteer as `fedvla join` and `simulate` run it: the shared trainer, its rollouts filmed as MP4
+/// (as the server films its own), so every client's `evaluate/round_N/client_K/` holds a video per episode, as a
+/// browser's does.
+pub struct FilmedRollouts(pub SmolVlaTrainer);
+
+/// Distinguishes the temporary files of concurrent volunteers in one process (`simulate`).
+static FILMS: AtomicU64 = AtomicU64::new(0);
+
+impl LocalTrainer for FilmedRollouts {
+    fn capabilities(&self) -> Capabilities {
+        self.0.capabilities()
+    }
+
+    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
+        self.0.set_global(global)
+    }
+
+    async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        self.0.train(task).await
+    }
+
+    async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
+        self.0.evaluate().await
+    }
+
+    async fn rollout(&mut self, request: &RolloutRequest) -> Result<Vec<RolloutOutput>, BoxError> {
+        let Some(policy) = self.0.sim_policy()? else { return Ok(Vec::new()) };
+        let mut outputs = Vec::new();
+        for episode in 0..request.episodes {
+            let path = std::env::temp_dir().join(format!(
+                "fedvla-rollout-{}-{}.mp4",
+                std::process::id(),
+                FILMS.fetch_add(1, Ordering::Relaxed)
+            ));
+            let mut film = Film::start(&path, ROLLOUT_VIDEO_SIZE);
+            let mut run = Episode::new(&policy, request.first_seed + u64::from(episode), request.max_frames as usize);
+            film.record(run.scene());
+            while run.step()? {
+                film.record(run.scene());
+            }
+            // A video that could not be made leaves the episode without one; the result still counts.
+            let video = match film.finish().and_then(|()| fs::read(&path).map_err(|e| e.to_string())) {
+                Ok(bytes) => Some(Video { file_name: video_name(episode as usize), mime: "video/mp4".into(), bytes }),
+                Err(message) => {
+                    tracing::warn!(episode, %message, "rollout video not recorded");
+                    None
+                }
+            };
+            let _ = fs::remove_file(&path);
+            outputs.push(RolloutOutput { episode: rollout_episode(episode, &run), video });
+        }
+        Ok(outputs)
+    }
 }
 
 /// One episode's video: every camera at `size`x`size`, side by side in [`Camera::ALL`] order. The

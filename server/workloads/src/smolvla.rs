@@ -32,7 +32,7 @@ use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
 use fedvla_aggregator::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
 
 use crate::datagen::{GenDataOptions, GenProgress, generate_dataset};
-use crate::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
+use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim};
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -504,9 +504,6 @@ impl ModelExporter for SimRollouts {
         Ok(summary.figures())
     }
 }
-
-/// Camera size in the rollout videos (two cameras side by side).
-const ROLLOUT_VIDEO_SIZE: u32 = 128;
 
 /// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
 struct LeRobotExport {

@@ -25,6 +25,15 @@ fn fixture() -> Option<PathBuf> {
     None
 }
 
+/// The fixture, and a temporary folder holding [`dataset`] at `data`.
+fn fixture_and_dataset() -> Option<(PathBuf, tempfile::TempDir, PathBuf)> {
+    let fixture = fixture()?;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    dataset(&data);
+    Some((fixture, tmp, data))
+}
+
 /// A small dataset with the fixture's cameras (32x32 top and wrist) and the fixture's task.
 fn dataset(root: &Path) {
     let cameras = ["top", "wrist"].map(|name| CameraSpec::new(name, 32, 32)).to_vec();
@@ -44,10 +53,7 @@ fn dataset(root: &Path) {
 
 #[test]
 fn a_run_from_a_checkpoint_uses_the_checkpoints_tokenizer_everywhere() {
-    let Some(fixture) = fixture() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    dataset(&data);
+    let Some((fixture, tmp, data)) = fixture_and_dataset() else { return };
     let config = RunConfig::default()
         .with_overrides(&format!(
             "model-size=tiny num-clients=2 rollout-episodes=0 dataset={} init-policy={}",
@@ -96,10 +102,7 @@ fn a_run_from_a_checkpoint_uses_the_checkpoints_tokenizer_everywhere() {
 
 #[test]
 fn a_checkpoint_without_a_tokenizer_is_refused_by_name() {
-    let Some(fixture) = fixture() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    dataset(&data);
+    let Some((fixture, tmp, data)) = fixture_and_dataset() else { return };
     // The fixture without its backbone's tokenizer.
     let policy = tmp.path().join("policy");
     std::fs::create_dir_all(policy.join("vlm")).unwrap();
@@ -119,10 +122,7 @@ fn a_checkpoint_without_a_tokenizer_is_refused_by_name() {
 
 #[test]
 fn a_bf16_export_reloads_within_rounding_and_lerobot_loads_it() {
-    let Some(fixture) = fixture() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    dataset(&data);
+    let Some((fixture, tmp, data)) = fixture_and_dataset() else { return };
     let run = |dtype: &str| {
         let config = RunConfig::default()
             .with_overrides(&format!(

@@ -3,7 +3,7 @@
 //! coordinate-wise median; FedTrimmedAvg drops the `beta` fraction of largest and of smallest values of every
 //! coordinate and averages the rest (Yin et al. 2018's trimmed mean). Both buffer the round's updates.
 
-use super::{Aggregation, Strategy};
+use super::interface::{Aggregation, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::{NamedTensors, TensorSpec};
@@ -105,13 +105,7 @@ impl Aggregation for Buffered {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::strategy::aggregate;
-
-    fn one(v: [f32; 2]) -> NamedTensors {
-        let mut t = NamedTensors::new();
-        t.insert("w", vec![2], v.to_vec()).unwrap();
-        t
-    }
+    use crate::strategy::interface::{aggregate, one};
 
     fn run(strategy: &dyn Strategy, updates: &[[f32; 2]]) -> Vec<f32> {
         let updates: Vec<NamedTensors> = updates.iter().map(|&u| one(u)).collect();

@@ -4,7 +4,8 @@
 //! Algorithm 2 of Reddi et al., "Adaptive Federated Optimization", ICLR 2021 (no bias correction, `v` starting at
 //! `tau^2`, as written there).
 
-use super::{Aggregation, Step, Strategy, WeightedMean};
+use super::interface::{Aggregation, Step, Strategy};
+use super::mean::WeightedMean;
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
@@ -153,13 +154,7 @@ impl Strategy for FedAdaptive {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::strategy::aggregate;
-
-    fn one(v: [f32; 2]) -> NamedTensors {
-        let mut t = NamedTensors::new();
-        t.insert("w", vec![2], v.to_vec()).unwrap();
-        t
-    }
+    use crate::strategy::interface::{aggregate, one};
 
     /// Two rounds of `strategy`, committing in between: the two globals.
     fn two_rounds(strategy: &mut dyn Strategy, rounds: [[(NamedTensors, u64); 2]; 2]) -> [Vec<f32>; 2] {

@@ -1,0 +1,75 @@
+//! The aggregation interface every strategy implements, and [`aggregate`], a whole round folded at once.
+
+use crate::error::AggregateError;
+use crate::protocol::StrategyParams;
+use crate::tensors::NamedTensors;
+
+/// One round's aggregation in progress.
+pub trait Aggregation: Send {
+    /// Folds one client's update (its trained tensors) with weight `examples`.
+    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError>;
+
+    /// The round's aggregate of everything folded.
+    fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError>;
+}
+
+/// The next global model, with the strategy state it leaves once committed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Step {
+    pub global: NamedTensors,
+    pub state: NamedTensors,
+}
+
+/// Turns the clients' updates of each round into the next global model.
+pub trait Strategy: Send {
+    /// Parameters clients need for local training, sent in every task.
+    fn client_params(&self) -> StrategyParams;
+
+    /// Opens a round whose clients trained from `global`.
+    fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation>;
+
+    /// The next global model from `global` and the round's `aggregate`; nothing of `self` changes until
+    /// [`Strategy::commit`].
+    fn step(&self, global: &NamedTensors, aggregate: NamedTensors) -> Result<Step, AggregateError> {
+        let _ = global;
+        Ok(Step { global: aggregate, state: NamedTensors::new() })
+    }
+
+    /// Takes up the state of a committed round.
+    fn commit(&mut self, state: NamedTensors) {
+        let _ = state;
+    }
+
+    /// The state to save with a round (and to hand back to [`Strategy::commit`] on resume).
+    fn state(&self) -> NamedTensors {
+        NamedTensors::new()
+    }
+}
+
+/// Every update of a round folded in order: the aggregate of `strategy` over `updates` (tensors, weight) from
+/// `global`, and the step it leads to (uncommitted).
+pub fn aggregate<'a>(
+    strategy: &dyn Strategy,
+    global: &NamedTensors,
+    updates: impl IntoIterator<Item = (&'a NamedTensors, u64)>,
+) -> Result<Step, AggregateError> {
+    let mut round = strategy.begin(global);
+    for (index, (update, examples)) in updates.into_iter().enumerate() {
+        round.fold(update, examples).map_err(|e| match e {
+            AggregateError::Mismatch { source, .. } => AggregateError::Mismatch { index, source },
+            other => other,
+        })?;
+    }
+    let step = strategy.step(global, round.finish()?)?;
+    // Finite inputs average to finite values; the check keeps that promise for every strategy's output.
+    step.global.validate(&global.spec()).map_err(AggregateError::Aggregate)?;
+    Ok(step)
+}
+
+/// A one-tensor model `w = v`, for the strategies' tests.
+#[cfg(test)]
+pub(super) fn one(v: [f32; 2]) -> NamedTensors {
+    let mut t = NamedTensors::new();
+    t.insert("w", vec![2], v.to_vec()).unwrap();
+    t
+}

@@ -99,16 +99,30 @@ async fn same_seed_same_model_other_seed_differs() {
 /// strategy's parameters in each task, the global models stay finite, and the server's held-out loss falls.
 #[tokio::test]
 async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
-    for strategy in ["fedavg", "fedprox", "fedavgm", "fedadagrad", "fedyogi", "fedadam", "median", "trimmed-mean"] {
+    let five = "num-clients=5 min-clients=5 min-fit=5";
+    for (strategy, extra) in [
+        ("fedavg", ""),
+        ("fedavg", "clip-update-norm=0.5"),
+        ("fedprox", ""),
+        ("fedavgm", ""),
+        ("fedadagrad", ""),
+        ("fedyogi", ""),
+        ("fedadam", ""),
+        ("median", ""),
+        ("trimmed-mean", ""),
+        ("krum", five),
+        ("multi-krum", five),
+    ] {
         let base = tempfile::tempdir().unwrap();
         // The adaptive optimizers take per-coordinate steps of about server-lr: small ones for a least-squares fit.
         let lr = if strategy.starts_with("fedad") || strategy == "fedyogi" { 0.05 } else { 1.0 };
         let cfg = config(&format!(
-            "num-server-rounds=3 strategy={strategy} server-lr={lr} server-momentum=0.5 proximal-mu=0.1"
+            "num-server-rounds=3 strategy={strategy} server-lr={lr} server-momentum=0.5 proximal-mu=0.1 {extra}"
         ));
+        let clients = cfg.num_clients;
         let run_dir = RunDir::create(base.path(), &cfg).unwrap();
         let handle = start(cfg.clone(), run_dir.clone()).await;
-        let clients: Vec<_> = (0..3)
+        let clients: Vec<_> = (0..clients)
             .map(|shard| {
                 let trainer = TestTrainer::new(shard, None).0;
                 let tasks = trainer.tasks();

@@ -46,6 +46,10 @@ pub enum StrategyKind {
     Median,
     /// Coordinate-wise mean without the `trim-beta` fraction of largest and of smallest values.
     TrimmedMean,
+    /// The update nearest its neighbours, tolerating `krum-f` attackers (needs min-fit >= 2 krum-f + 3).
+    Krum,
+    /// The mean of the `krum-keep` updates Krum ranks best.
+    MultiKrum,
 }
 
 pub use fedvla_federation::WorkloadKind;
@@ -95,6 +99,9 @@ pub struct RunConfig {
     pub server_beta2: f64,
     pub server_tau: f64,
     pub trim_beta: f64,
+    pub krum_f: usize,
+    pub krum_keep: usize,
+    pub clip_update_norm: f64,
     pub workload: WorkloadKind,
     pub dataset: String,
     pub dataset_episodes: usize,
@@ -247,6 +254,25 @@ impl RunConfig {
                 return fail(format!("{key} must be in [0, 1), got {value}"));
             }
         }
+        if matches!(self.strategy, StrategyKind::Krum | StrategyKind::MultiKrum) {
+            let need = 2 * self.krum_f + 3;
+            if self.min_fit < need {
+                return fail(format!(
+                    "krum with krum-f={} needs at least {need} updates a round (n >= 2f + 3), but min-fit is {}",
+                    self.krum_f, self.min_fit
+                ));
+            }
+            if self.strategy == StrategyKind::MultiKrum && !(1..=self.min_fit - self.krum_f).contains(&self.krum_keep) {
+                return fail(format!(
+                    "krum-keep must be in [1, min-fit - krum-f] = [1, {}], got {}",
+                    self.min_fit - self.krum_f,
+                    self.krum_keep
+                ));
+            }
+        }
+        if !(self.clip_update_norm.is_finite() && self.clip_update_norm >= 0.0) {
+            return fail(format!("clip-update-norm must be 0 (off) or positive, got {}", self.clip_update_norm));
+        }
         if !(0.0..0.5).contains(&self.trim_beta) {
             return fail(format!("trim-beta must be in [0, 0.5), got {}", self.trim_beta));
         }
@@ -296,6 +322,19 @@ mod tests {
         let cfg = RunConfig::default();
         assert_eq!(cfg.strategy, StrategyKind::Fedavg);
         assert_eq!(RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(), cfg);
+    }
+
+    #[test]
+    fn a_robust_rule_that_cannot_be_honoured_is_refused_naming_both_numbers() {
+        let err = RunConfig::default().with_overrides("strategy=krum krum-f=1 min-fit=3").unwrap_err().to_string();
+        assert!(err.contains("needs at least 5 updates") && err.contains("min-fit is 3"), "{err}");
+        let err = RunConfig::default()
+            .with_overrides("strategy=multi-krum krum-f=1 krum-keep=9 num-clients=5 min-clients=5 min-fit=5")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("= [1, 4], got 9"), "{err}");
+        let ok = RunConfig::default().with_overrides("strategy=krum krum-f=1 num-clients=5 min-clients=5 min-fit=5");
+        assert!(ok.is_ok(), "{ok:?}");
     }
 
     #[test]

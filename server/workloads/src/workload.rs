@@ -7,8 +7,8 @@ use fedvla_aggregator::parts::ServerParts;
 use fedvla_aggregator::registry::VolunteerOffer;
 use fedvla_aggregator::run_dir::{ModelExporter, RunDir};
 use fedvla_federation::{
-    Adaptivity, BoxError, Evaluator, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg, NamedTensors,
-    Strategy,
+    Adaptivity, BoxError, ClippedUpdates, Evaluator, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg,
+    Krum, NamedTensors, Strategy,
 };
 
 pub trait Workload {
@@ -40,7 +40,7 @@ pub fn server_parts(workload: &impl Workload, config: RunConfig, run_dir: RunDir
 /// The configured aggregation strategy, with its parameters.
 pub fn strategy(c: &RunConfig) -> Box<dyn Strategy> {
     let adaptive = |rule| Box::new(FedAdaptive::new(rule, c.server_lr, c.server_beta1, c.server_beta2, c.server_tau));
-    match c.strategy {
+    let rule: Box<dyn Strategy> = match c.strategy {
         StrategyKind::Fedavg => Box::new(FedAvg),
         StrategyKind::Fedprox => Box::new(FedProx { mu: c.proximal_mu }),
         StrategyKind::Fedavgm => Box::new(FedAvgM::new(c.server_lr, c.server_momentum)),
@@ -49,5 +49,8 @@ pub fn strategy(c: &RunConfig) -> Box<dyn Strategy> {
         StrategyKind::Fedadam => adaptive(Adaptivity::Adam),
         StrategyKind::Median => Box::new(FedMedian),
         StrategyKind::TrimmedMean => Box::new(FedTrimmedAvg { beta: c.trim_beta }),
-    }
+        StrategyKind::Krum => Box::new(Krum { f: c.krum_f, keep: 1 }),
+        StrategyKind::MultiKrum => Box::new(Krum { f: c.krum_f, keep: c.krum_keep }),
+    };
+    if c.clip_update_norm > 0.0 { Box::new(ClippedUpdates { inner: rule, max_norm: c.clip_update_norm }) } else { rule }
 }

@@ -80,6 +80,8 @@ impl CodecError {
 pub enum AggregateError {
     #[error("no updates to aggregate")]
     NoUpdates,
+    #[error("{rule} needs at least {need} updates a round, got {got}")]
+    TooFew { rule: &'static str, need: usize, got: usize },
     #[error("updates carry zero examples in total")]
     ZeroExamples,
     #[error("update {index} does not match the global model: {source}")]

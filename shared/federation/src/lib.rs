@@ -25,7 +25,7 @@ pub use protocol::{
 };
 pub use seed::{fnv1a, mix};
 pub use strategy::{
-    Adaptivity, Aggregation, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg, Step, Strategy,
-    WeightedMean, aggregate,
+    Adaptivity, Aggregation, ClippedUpdates, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg, Krum,
+    Step, Strategy, WeightedMean, aggregate,
 };
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

@@ -5,12 +5,14 @@
 //! round (server moments, control variates, a clipping norm) changes only when the server commits the round, so
 //! a round retried or skipped leaves it as it was, and it is saved with each round for `--resume`.
 
+mod clipping;
 mod interface;
 mod mean;
 mod robust;
 mod server_opt;
 
+pub use clipping::ClippedUpdates;
 pub use interface::{Aggregation, Step, Strategy, aggregate};
 pub use mean::{FedAvg, FedProx, WeightedMean};
-pub use robust::{FedMedian, FedTrimmedAvg};
+pub use robust::{FedMedian, FedTrimmedAvg, Krum};
 pub use server_opt::{Adaptivity, FedAdaptive, FedAvgM};

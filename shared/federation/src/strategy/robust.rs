@@ -1,7 +1,8 @@
-//! Robust rules: coordinate-wise statistics of the round's client models that a few wild updates cannot drag
-//! far, unweighted by examples (a weight is a claim an attacker would inflate). FedMedian is Yin et al. 2018's
-//! coordinate-wise median; FedTrimmedAvg drops the `beta` fraction of largest and of smallest values of every
-//! coordinate and averages the rest (Yin et al. 2018's trimmed mean). Both buffer the round's updates.
+//! Robust rules: statistics of the round's client models that a few wild updates cannot drag far. FedMedian is
+//! Yin et al. 2018's coordinate-wise median; FedTrimmedAvg drops the `beta` fraction of largest and of smallest
+//! values of every coordinate and averages the rest (Yin et al. 2018's trimmed mean); both are unweighted.
+//! Krum (Blanchard et al. 2017) picks the update closest to its `n - f - 2` nearest neighbours, Multi-Krum
+//! averages the `keep` best by that score (example-weighted, as Flower's). All buffer the round's updates.
 
 use super::interface::{Aggregation, Strategy};
 use crate::error::AggregateError;
@@ -18,13 +19,38 @@ pub struct FedTrimmedAvg {
     pub beta: f64,
 }
 
+/// Krum (`keep` = 1) or Multi-Krum, tolerating `f` Byzantine clients; needs `n >= 2f + 3` updates a round.
+#[derive(Debug, Clone, Copy)]
+pub struct Krum {
+    pub f: usize,
+    pub keep: usize,
+}
+
+impl Krum {
+    /// Updates a round needs for `f` tolerated attackers.
+    pub fn min_updates(f: usize) -> usize {
+        2 * f + 3
+    }
+}
+
+impl Strategy for Krum {
+    fn client_params(&self) -> StrategyParams {
+        let name = if self.keep == 1 { "krum" } else { "multi-krum" };
+        StrategyParams { name: name.into(), proximal_mu: 0.0 }
+    }
+
+    fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
+        Box::new(Buffered::new(global, Rule::Krum(*self)))
+    }
+}
+
 impl Strategy for FedMedian {
     fn client_params(&self) -> StrategyParams {
         StrategyParams { name: "median".into(), proximal_mu: 0.0 }
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
-        Box::new(Buffered::new(global, Statistic::Median))
+        Box::new(Buffered::new(global, Rule::Coordinate(Statistic::Median)))
     }
 }
 
@@ -34,7 +60,7 @@ impl Strategy for FedTrimmedAvg {
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
-        Box::new(Buffered::new(global, Statistic::TrimmedMean(self.beta)))
+        Box::new(Buffered::new(global, Rule::Coordinate(Statistic::TrimmedMean(self.beta))))
     }
 }
 
@@ -61,24 +87,81 @@ impl Statistic {
     }
 }
 
-/// A round's updates, kept whole until the round closes.
+#[derive(Debug, Clone, Copy)]
+enum Rule {
+    Coordinate(Statistic),
+    Krum(Krum),
+}
+
+/// A round's updates (and their weights), kept whole until the round closes.
 struct Buffered {
     global: NamedTensors,
     spec: TensorSpec,
-    statistic: Statistic,
-    updates: Vec<NamedTensors>,
+    rule: Rule,
+    updates: Vec<(NamedTensors, u64)>,
 }
 
 impl Buffered {
-    fn new(global: &NamedTensors, statistic: Statistic) -> Self {
-        Self { global: global.clone(), spec: global.spec(), statistic, updates: Vec::new() }
+    fn new(global: &NamedTensors, rule: Rule) -> Self {
+        Self { global: global.clone(), spec: global.spec(), rule, updates: Vec::new() }
+    }
+
+    fn coordinate_wise(&self, statistic: Statistic) -> NamedTensors {
+        let mut out = NamedTensors::new();
+        let mut column = Vec::with_capacity(self.updates.len());
+        for (name, t) in self.global.iter() {
+            let values = (0..t.values.len())
+                .map(|i| {
+                    column.clear();
+                    column.extend(self.updates.iter().map(|(u, _)| u.get(name).expect("validated").values[i]));
+                    statistic.of(&mut column)
+                })
+                .collect();
+            out.insert(name, t.shape.clone(), values).expect("global shape");
+        }
+        out
+    }
+
+    /// The example-weighted mean of the `keep` updates with the lowest Krum score: the sum of squared distances to
+    /// their `n - f - 2` nearest others.
+    fn krum(&self, Krum { f, keep }: Krum) -> Result<NamedTensors, AggregateError> {
+        let n = self.updates.len();
+        let need = Krum::min_updates(f);
+        if n < need {
+            let rule = if keep == 1 { "krum" } else { "multi-krum" };
+            return Err(AggregateError::TooFew { rule, need, got: n });
+        }
+        let flat: Vec<Vec<f32>> = self
+            .updates
+            .iter()
+            .map(|(u, _)| {
+                self.global.iter().flat_map(|(name, _)| u.get(name).expect("validated").values.clone()).collect()
+            })
+            .collect();
+        let distance =
+            |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum();
+        let scores: Vec<f64> = (0..n)
+            .map(|i| {
+                let mut d: Vec<f64> = (0..n).filter(|&j| j != i).map(|j| distance(&flat[i], &flat[j])).collect();
+                d.sort_unstable_by(f64::total_cmp);
+                d[..n - f - 2].iter().sum()
+            })
+            .collect();
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]));
+        let mut mean = super::mean::WeightedMean::new(&self.global);
+        for &i in &order[..keep.clamp(1, n)] {
+            let (update, examples) = &self.updates[i];
+            mean.fold(update, (*examples).max(1))?;
+        }
+        Box::new(mean).finish()
     }
 }
 
 impl Aggregation for Buffered {
-    fn fold(&mut self, update: &NamedTensors, _examples: u64) -> Result<(), AggregateError> {
+    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
         update.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index: self.updates.len(), source })?;
-        self.updates.push(update.clone());
+        self.updates.push((update.clone(), examples));
         Ok(())
     }
 
@@ -86,19 +169,10 @@ impl Aggregation for Buffered {
         if self.updates.is_empty() {
             return Err(AggregateError::NoUpdates);
         }
-        let mut out = NamedTensors::new();
-        let mut column = Vec::with_capacity(self.updates.len());
-        for (name, t) in self.global.iter() {
-            let values = (0..t.values.len())
-                .map(|i| {
-                    column.clear();
-                    column.extend(self.updates.iter().map(|u| u.get(name).expect("validated").values[i]));
-                    self.statistic.of(&mut column)
-                })
-                .collect();
-            out.insert(name, t.shape.clone(), values).expect("global shape");
+        match self.rule {
+            Rule::Coordinate(statistic) => Ok(self.coordinate_wise(statistic)),
+            Rule::Krum(krum) => self.krum(krum),
         }
-        Ok(out)
     }
 }
 
@@ -127,6 +201,23 @@ mod tests {
         assert_eq!(run(&FedTrimmedAvg { beta: 0.2 }, &updates), vec![2.0, 3.0]);
         // beta 0: the plain (unweighted) mean.
         assert_eq!(run(&FedTrimmedAvg { beta: 0.0 }, &[[1.0, 2.0], [3.0, 6.0]]), vec![2.0, 4.0]);
+    }
+
+    #[test]
+    fn krum_and_multi_krum_by_hand() {
+        // With f = 1, each score sums the 2 nearest squared distances: a 1+2 = 3, b 1+1 = 2, c 2+4 = 6, d 1+2 = 3,
+        // and the attacker e's are in the tens of thousands.
+        let updates = [[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [1.0, 1.0], [100.0, 100.0]];
+        assert_eq!(run(&Krum { f: 1, keep: 1 }, &updates), vec![1.0, 0.0], "b");
+        // Multi-Krum keeps b, a and d (a before d at equal scores) and averages them; a's weight is the claim of
+        // a billion examples, as `run` gives the first update.
+        let multi = run(&Krum { f: 1, keep: 3 }, &updates);
+        let w = 1e9f64;
+        let expected = [(1.0 + 0.0 * w + 1.0) / (w + 2.0), 1.0 / (w + 2.0)];
+        assert!((f64::from(multi[0]) - expected[0]).abs() < 1e-6 && (f64::from(multi[1]) - expected[1]).abs() < 1e-6);
+        // Fewer than 2f + 3 updates: refused, naming both numbers.
+        let r = aggregate(&Krum { f: 1, keep: 1 }, &one([0.0, 0.0]), [(&one([1.0, 1.0]), 1)]);
+        assert_eq!(r, Err(AggregateError::TooFew { rule: "krum", need: 5, got: 1 }));
     }
 
     #[test]

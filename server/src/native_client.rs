@@ -7,11 +7,14 @@ use std::time::Instant;
 use burn::tensor::Device;
 use fedvla_aggregator::config::Partitioning;
 use fedvla_federation::{
-    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, Video, WorkloadKind, routes, run_client,
+    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, Video, WorkloadKind, routes,
+    run_client,
 };
 use fedvla_learner::volunteer::{Fetch, fetch_setup, smolvla_volunteer};
 use fedvla_workloads::linreg::LinRegTrainer;
 use fedvla_workloads::sim_eval::FilmedRollouts;
+
+use crate::attack::{Attack, Attacker};
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
@@ -120,12 +123,13 @@ impl ClientTransport for NativeTransport {
 
 /// Volunteer `name` of the server at `server` (`ws://`, `http://` or `host:port`) until the run finishes: fetches
 /// its setup (on `shard` when given), builds the trainer the server's workload needs from what it downloads, and
-/// runs the shared round loop, reporting to `on_event`.
+/// runs the shared round loop, reporting to `on_event`. With `attack` (simulations only) its updates are corrupted.
 pub async fn volunteer(
     server: &str,
     name: &str,
     shard: Option<u32>,
     auth_token: Option<String>,
+    attack: Option<Attack>,
     on_event: impl FnMut(ClientEvent),
 ) -> Result<ClientSummary, BoxError> {
     let mut transport = NativeTransport::connect(server).await?;
@@ -137,13 +141,27 @@ pub async fn volunteer(
             // The linreg shard is generated from its index; the setup says how the data is split.
             let partitioning: Partitioning = serde_json::from_value(setup.policy["partitioning"].clone())
                 .map_err(|e| format!("the linreg setup's partitioning: {e}"))?;
-            let mut trainer = LinRegTrainer::new(setup.shard_index as usize, partitioning);
-            Ok(run_client(&mut transport, &mut trainer, &options, on_event).await?)
+            let trainer = LinRegTrainer::new(setup.shard_index as usize, partitioning);
+            run_as(&mut transport, trainer, attack, &options, on_event).await
         }
         WorkloadKind::Smolvla => {
             let device = Device::flex().autodiff();
             let trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
-            Ok(run_client(&mut transport, &mut FilmedRollouts(trainer), &options, on_event).await?)
+            run_as(&mut transport, FilmedRollouts(trainer), attack, &options, on_event).await
         }
     }
+}
+
+/// The round loop with `trainer`, honest or, with `attack`, corrupting its updates.
+async fn run_as(
+    transport: &mut NativeTransport,
+    mut trainer: impl LocalTrainer,
+    attack: Option<Attack>,
+    options: &ClientOptions,
+    on_event: impl FnMut(ClientEvent),
+) -> Result<ClientSummary, BoxError> {
+    Ok(match attack {
+        Some(attack) => run_client(transport, &mut Attacker::new(trainer, attack), options, on_event).await?,
+        None => run_client(transport, &mut trainer, options, on_event).await?,
+    })
 }

@@ -22,6 +22,7 @@ use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
+use crate::attack::Attack;
 use crate::native_client;
 
 /// Where a run shows its progress bars (hidden inside an experiment, which has one bar for its grid).
@@ -91,6 +92,8 @@ fn serve_clients(
 ) -> anyhow::Result<RunStatus> {
     let clients = config.num_clients;
     let rounds = config.num_server_rounds;
+    let attack = Attack { kind: config.attack, strength: config.attack_strength };
+    let attackers = config.attackers;
     let parts = server_parts(workload, config, run_dir).map_err(boxed)?;
     runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
@@ -113,7 +116,11 @@ fn serve_clients(
             }
         });
         let tasks: Vec<_> = (0..clients)
-            .map(|shard| Ok(spawn_client(url.clone(), shard, bars.bar(rounds, format!("client {shard}"))?)))
+            .map(|shard| {
+                let attack = (shard < attackers).then_some(attack);
+                let prefix = if attack.is_some() { format!("attacker {shard}") } else { format!("client {shard}") };
+                Ok(spawn_client(url.clone(), shard, attack, bars.bar(rounds, prefix)?))
+            })
             .collect::<anyhow::Result<_>>()?;
         // A simulated federation cannot finish without its clients: the first client to fail
         // stops the run instead of leaving the server waiting for it.
@@ -151,36 +158,42 @@ fn serve_clients(
 
 /// Volunteer `client-<shard>` on shard `shard` with its own progress bar, on its own thread: trainers' futures
 /// need not be `Send` (the browser's are not), and CPU-bound trainers then train in parallel.
-fn spawn_client(url: String, shard: usize, bar: ProgressBar) -> oneshot::Receiver<anyhow::Result<()>> {
+fn spawn_client(
+    url: String,
+    shard: usize,
+    attack: Option<Attack>,
+    bar: ProgressBar,
+) -> oneshot::Receiver<anyhow::Result<()>> {
     let (done_tx, done) = oneshot::channel();
     std::thread::spawn(move || {
         let client = async move {
             let name = format!("client-{shard}");
-            let summary = native_client::volunteer(&url, &name, Some(shard as u32), None, |event| match event {
-                ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
-                ClientEvent::Task { round, local_steps } => {
-                    bar.set_message(format!("round {round}: training {local_steps} steps"));
-                }
-                ClientEvent::Trained { round, train_loss, .. } => {
-                    bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
-                }
-                ClientEvent::Uploaded { round, bytes, .. } => {
-                    bar.set_message(format!("round {round}: sent {bytes} B"));
-                }
-                ClientEvent::RolledOut { round, episodes, successes } => {
-                    bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
-                }
-                ClientEvent::RoundClosed { round, accepted } => {
-                    if accepted {
-                        bar.set_position(round);
+            let summary =
+                native_client::volunteer(&url, &name, Some(shard as u32), None, attack, |event| match event {
+                    ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
+                    ClientEvent::Task { round, local_steps } => {
+                        bar.set_message(format!("round {round}: training {local_steps} steps"));
                     }
-                }
-                ClientEvent::Refused { code, .. } => {
-                    bar.set_message(format!("refused: {}", code.as_str()));
-                }
-            })
-            .await
-            .map_err(boxed)?;
+                    ClientEvent::Trained { round, train_loss, .. } => {
+                        bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
+                    }
+                    ClientEvent::Uploaded { round, bytes, .. } => {
+                        bar.set_message(format!("round {round}: sent {bytes} B"));
+                    }
+                    ClientEvent::RolledOut { round, episodes, successes } => {
+                        bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
+                    }
+                    ClientEvent::RoundClosed { round, accepted } => {
+                        if accepted {
+                            bar.set_position(round);
+                        }
+                    }
+                    ClientEvent::Refused { code, .. } => {
+                        bar.set_message(format!("refused: {}", code.as_str()));
+                    }
+                })
+                .await
+                .map_err(boxed)?;
             bar.finish_with_message(format!(
                 "{} rounds, {} B up, {} B down",
                 summary.rounds_trained, summary.bytes_up, summary.bytes_down

@@ -67,6 +67,16 @@ pub enum Partitioning {
     ByEpisode,
 }
 
+/// How `simulate`'s attackers corrupt their updates (see `fedvla_server::attack`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AttackKind {
+    /// `global + strength * (update - global)`.
+    Scale,
+    /// `global - strength * (update - global)`.
+    SignFlip,
+}
+
 /// The dtype of each round's exported `model.safetensors`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -102,6 +112,9 @@ pub struct RunConfig {
     pub krum_f: usize,
     pub krum_keep: usize,
     pub clip_update_norm: f64,
+    pub attackers: usize,
+    pub attack: AttackKind,
+    pub attack_strength: f64,
     pub workload: WorkloadKind,
     pub dataset: String,
     pub dataset_episodes: usize,
@@ -269,6 +282,12 @@ impl RunConfig {
                     self.krum_keep
                 ));
             }
+        }
+        if self.attackers > self.num_clients || !(self.attack_strength.is_finite() && self.attack_strength > 0.0) {
+            return fail(format!(
+                "attackers ({}) must be at most num-clients ({}) and attack-strength positive, got {}",
+                self.attackers, self.num_clients, self.attack_strength
+            ));
         }
         if !(self.clip_update_norm.is_finite() && self.clip_update_norm >= 0.0) {
             return fail(format!("clip-update-norm must be 0 (off) or positive, got {}", self.clip_update_norm));

@@ -30,6 +30,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         &name,
         args.shard,
         args.auth_token,
+        None,
         |event| match event {
             ClientEvent::Trained { round, examples, train_loss } => {
                 tracing::info!(round, examples, train_loss, "trained");

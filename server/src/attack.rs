@@ -1,0 +1,79 @@
+//! Simulated attackers, for `simulate` and the robust rules' tests: a volunteer that trains honestly and then
+//! sends a corrupted update, `global + strength * (update - global)` (`scale`: a boosted update, as a model
+//! replacement attack sends) or `global - strength * (update - global)` (`sign-flip`: the honest step reversed
+//! and amplified). `attackers = K` makes clients 0..K such volunteers.
+
+use fedvla_aggregator::config::AttackKind;
+use fedvla_federation::protocol::RolloutRequest;
+use fedvla_federation::{
+    BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutOutput, RoundTask, TrainOutput,
+};
+
+/// How an attacker corrupts its updates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Attack {
+    pub kind: AttackKind,
+    pub strength: f64,
+}
+
+impl Attack {
+    /// `update` as this attack sends it, from the `global` model it started from.
+    pub fn corrupt(&self, global: &NamedTensors, update: &NamedTensors) -> NamedTensors {
+        let factor = match self.kind {
+            AttackKind::Scale => self.strength,
+            AttackKind::SignFlip => -self.strength,
+        };
+        let mut out = NamedTensors::new();
+        for (name, g) in global.iter() {
+            let u = update.get(name).map_or(&g.values, |t| &t.values);
+            let values = g
+                .values
+                .iter()
+                .zip(u)
+                .map(|(g, u)| (f64::from(*g) + factor * (f64::from(*u) - f64::from(*g))) as f32)
+                .collect();
+            out.insert(name, g.shape.clone(), values).expect("global shape");
+        }
+        out
+    }
+}
+
+/// A volunteer's trainer whose updates `attack` corrupts; everything else is the honest trainer's.
+pub struct Attacker<T> {
+    pub inner: T,
+    pub attack: Attack,
+    global: Option<NamedTensors>,
+}
+
+impl<T> Attacker<T> {
+    pub fn new(inner: T, attack: Attack) -> Self {
+        Self { inner, attack, global: None }
+    }
+}
+
+impl<T: LocalTrainer> LocalTrainer for Attacker<T> {
+    fn capabilities(&self) -> Capabilities {
+        self.inner.capabilities()
+    }
+
+    fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
+        self.global = Some(global.clone());
+        self.inner.set_global(global)
+    }
+
+    async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
+        let mut out = self.inner.train(task).await?;
+        if let Some(global) = &self.global {
+            out.update = self.attack.corrupt(global, &out.update);
+        }
+        Ok(out)
+    }
+
+    async fn evaluate(&mut self) -> Result<EvalOutput, BoxError> {
+        self.inner.evaluate().await
+    }
+
+    async fn rollout(&mut self, request: &RolloutRequest) -> Result<Vec<RolloutOutput>, BoxError> {
+        self.inner.rollout(request).await
+    }
+}

@@ -1,0 +1,42 @@
+//! One attacker among five clients, sampled every round, sending its update scaled by 100 (and, separately,
+//! sign-flipped): FedAvg is broken by it, while the robust rules stay where they are without the attacker.
+//! On the linreg workload, over loopback, through `simulate`'s own client spawning.
+
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::records::read_metrics;
+use fedvla_aggregator::run_dir::RunDir;
+use fedvla_server::runs::{Bars, federated};
+
+/// The final server held-out loss of a 3-round, 5-client linreg federation.
+fn final_loss(overrides: &str) -> f64 {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = RunConfig::default()
+        .with_overrides(&format!(
+            "workload=linreg num-clients=5 min-clients=5 min-fit=5 fraction-fit=1.0 num-server-rounds=3 \
+             local-steps=30 batch-size=8 lr=0.05 round-deadline-ms=20000 {overrides}"
+        ))
+        .unwrap();
+    let run_dir = RunDir::create(tmp.path(), &config).unwrap();
+    federated(config, run_dir.clone(), &Bars::hidden()).unwrap();
+    let lines = read_metrics(run_dir.path()).unwrap();
+    lines.last().and_then(|l| l.global.as_ref()).and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss
+}
+
+#[test]
+fn fedavg_breaks_under_one_attacker_and_the_robust_rules_do_not() {
+    for attack in ["attack=scale attack-strength=100", "attack=sign-flip attack-strength=10"] {
+        let clean = final_loss("strategy=fedavg");
+        let broken = final_loss(&format!("strategy=fedavg attackers=1 {attack}"));
+        println!("fedavg, {attack}: held-out loss {clean:.5} without the attacker, {broken:.5} with");
+        assert!(broken > 10.0 * clean, "{attack}: FedAvg's loss {clean} -> {broken} under attack");
+        for rule in ["strategy=median", "strategy=trimmed-mean", "strategy=krum", "strategy=multi-krum krum-keep=3"] {
+            let without = final_loss(rule);
+            let with = final_loss(&format!("{rule} attackers=1 {attack}"));
+            println!("{rule}, {attack}: held-out loss {without:.5} without the attacker, {with:.5} with");
+            assert!(
+                with <= without * 1.05 + 1e-9,
+                "{rule}, {attack}: loss {without} without the attacker, {with} with"
+            );
+        }
+    }
+}

@@ -150,6 +150,25 @@ fn a_bf16_export_reloads_within_rounding_and_lerobot_loads_it() {
         }
     }
 
+    // A run from the bf16 export keeps bf16: its own exports (auto), and the frozen tensors volunteers download,
+    // exactly the values the server holds, at half the bytes of f32.
+    let from_bf16 = RunConfig::default()
+        .with_overrides(&format!(
+            "model-size=tiny rollout-episodes=0 dataset={} init-policy={}",
+            data.display(),
+            tmp.path().join("round_0_bf16/policy").display()
+        ))
+        .unwrap();
+    let workload = SmolVlaWorkload::prepare(&from_bf16, &tmp.path().join("shards_from_bf16")).unwrap();
+    let frozen = workload.volunteer_offer().unwrap().frozen.expect("frozen tensors offered");
+    let downloaded = fedvla_policy::weights::parse_safetensors(&frozen, Path::new("frozen")).unwrap();
+    let trainable: std::collections::BTreeSet<String> =
+        bf16.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
+    let held: fedvla_policy::WeightMap = bf16.weights.into_iter().filter(|(k, _)| !trainable.contains(k)).collect();
+    assert_eq!(downloaded, held, "the download is the frozen tensors, bit for bit");
+    let f32_bytes = fedvla_policy::weights::safetensors_bytes(&held).unwrap().len() as f64;
+    assert!((frozen.len() as f64) < 0.55 * f32_bytes, "{} bytes in bf16 against {f32_bytes} in f32", frozen.len());
+
     // LeRobot 0.6.1 itself loads the bf16 export and acts with it (the checker's chroot, as tests/run.sh sets).
     let Ok(env) = std::env::var("FEDVLA_LEROBOT_ENV") else {
         eprintln!("SKIPPED: FEDVLA_LEROBOT_ENV not set; LeRobot's load of the bf16 export not checked");

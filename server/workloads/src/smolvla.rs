@@ -20,7 +20,7 @@ use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::tokenizer::PAD_ID;
-use fedvla_policy::weights::{init_random, safetensors_bytes};
+use fedvla_policy::weights::{init_random, safetensors_bytes_as};
 use fedvla_policy::{
     FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap, WordTokenizer,
 };
@@ -47,6 +47,9 @@ pub struct SmolVlaWorkload {
     tokenizer: RunTokenizer,
     /// What every round's export stores its tensors in.
     export_dtype: StoredDtype,
+    /// What the init checkpoint stored its tensors in (f32 from random weights): volunteers download the frozen
+    /// tensors in it, which loses nothing and halves the bytes of a bf16 `smolvla_base`.
+    checkpoint_dtype: StoredDtype,
     /// What the policy is fed, in words (see [`SmolVlaWorkload::inputs`]).
     inputs: String,
     client_shards: Vec<ShardOffer>,
@@ -387,6 +390,7 @@ impl SmolVlaWorkload {
                 .context("building the pooled training shard")?;
         }
         bar.finish_and_clear();
+        let checkpoint_dtype = init.as_ref().map_or(StoredDtype::F32, |policy| policy.dtype);
         let export_dtype = match (config.export_dtype, &init) {
             (ExportDtype::F32, _) | (ExportDtype::Auto, None) => StoredDtype::F32,
             (ExportDtype::Bf16, _) => StoredDtype::Bf16,
@@ -412,6 +416,7 @@ impl SmolVlaWorkload {
             weights,
             tokenizer,
             export_dtype,
+            checkpoint_dtype,
             client_shards,
             server_shard,
             pooled_shard,
@@ -572,7 +577,7 @@ impl Workload for SmolVlaWorkload {
             workload: WorkloadKind::Smolvla,
             shards: self.client_shards.clone(),
             policy: serde_json::json!({ "policy": self.cfg.to_lerobot_json(), "vlm": self.cfg.vlm_config_json() }),
-            frozen: Some(safetensors_bytes(&self.frozen_weights())?.into()),
+            frozen: Some(safetensors_bytes_as(&self.frozen_weights(), self.checkpoint_dtype)?.into()),
             rollout_task_tokens: ids.into_iter().map(|i| i as u32).collect(),
             rollout_task_mask: mask,
         })

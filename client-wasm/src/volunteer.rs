@@ -226,7 +226,7 @@ impl LocalTrainer for BrowserTrainer {
                 sleep_ms(((due - now_seconds()) * 1000.0).max(0.0) as i32).await;
             }
             let video = recorder.finish(format!("episode_{episode}.webm")).await.map_err(boxed)?;
-            let record = rollout_episode(episode, &run);
+            let record = rollout_episode(episode, &run.result());
             self.status.send("rolled_out", json!({ "episode": episode, "success": record.success, "length": record.length, "video_bytes": video.bytes.len() }));
             outputs.push(RolloutOutput { episode: record, video: Some(video) });
         }

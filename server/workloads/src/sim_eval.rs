@@ -17,7 +17,7 @@ use fedvla_federation::{
     TrainOutput, Video,
 };
 use fedvla_learner::SmolVlaTrainer;
-use fedvla_learner::rollout::{Episode, EpisodeResult, SimPolicy, run_episode};
+use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
 use fedvla_learner::trainer::rollout_episode;
 use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, Scene, drive_expert, render};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -176,11 +176,8 @@ impl LocalTrainer for FilmedRollouts {
                 FILMS.fetch_add(1, Ordering::Relaxed)
             ));
             let mut film = Film::start(&path, ROLLOUT_VIDEO_SIZE);
-            let mut run = Episode::new(&policy, request.first_seed + u64::from(episode), request.max_frames as usize);
-            film.record(run.scene());
-            while run.step()? {
-                film.record(run.scene());
-            }
+            let seed = request.first_seed + u64::from(episode);
+            let result = run_episode(&policy, seed, request.max_frames as usize, |scene| film.record(scene))?;
             // A video that could not be made leaves the episode without one; the result still counts.
             let video = match film.finish().and_then(|()| fs::read(&path).map_err(|e| e.to_string())) {
                 Ok(bytes) => Some(Video { file_name: video_name(episode as usize), mime: "video/mp4".into(), bytes }),
@@ -190,7 +187,7 @@ impl LocalTrainer for FilmedRollouts {
                 }
             };
             let _ = fs::remove_file(&path);
-            outputs.push(RolloutOutput { episode: rollout_episode(episode, &run), video });
+            outputs.push(RolloutOutput { episode: rollout_episode(episode, &result), video });
         }
         Ok(outputs)
     }

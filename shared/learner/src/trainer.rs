@@ -15,7 +15,7 @@ use rand::seq::SliceRandom;
 
 use crate::examples::ShardExamples;
 use crate::heldout::{HeldOut, heldout_metrics};
-use crate::rollout::{Episode, SimPolicy, TaskTokens};
+use crate::rollout::{EpisodeResult, SimPolicy, TaskTokens, run_episode};
 use crate::tensors::{to_named, to_weights};
 
 /// Where a round's local training stands, after each step.
@@ -150,9 +150,9 @@ impl LocalTrainer for SmolVlaTrainer {
         let Some(policy) = self.sim_policy()? else { return Ok(Vec::new()) };
         (0..request.episodes)
             .map(|episode| {
-                let mut run = Episode::new(&policy, request.first_seed + episode as u64, request.max_frames as usize);
-                while run.step()? {}
-                Ok(RolloutOutput { episode: rollout_episode(episode, &run), video: None })
+                let seed = request.first_seed + u64::from(episode);
+                let result = run_episode(&policy, seed, request.max_frames as usize, |_| {})?;
+                Ok(RolloutOutput { episode: rollout_episode(episode, &result), video: None })
             })
             .collect()
     }
@@ -174,7 +174,6 @@ pub fn lr_at(task: &RoundTask, step: u32) -> f64 {
 }
 
 /// The protocol's record of a finished episode (its video is filled in by whoever filmed it).
-pub fn rollout_episode(episode: u32, run: &Episode) -> RolloutEpisode {
-    let result = run.result();
+pub fn rollout_episode(episode: u32, result: &EpisodeResult) -> RolloutEpisode {
     RolloutEpisode { episode, seed: result.seed, success: result.success, length: result.length as u32, video: None }
 }

@@ -10,7 +10,7 @@ use crate::config::{SmolVlaConfig, VlmConfig};
 use crate::error::PolicyError;
 use crate::normalize::NormStats;
 use crate::tokenizer::{Tokenizer, WordTokenizer};
-use crate::weights::{StoredDtype, WeightMap, check_keys, read_safetensors, write_safetensors_as};
+use crate::weights::{StoredDtype, WeightMap, check_keys, read_checkpoint, write_safetensors_as};
 
 /// A policy read from disk.
 #[derive(Debug, Clone)]
@@ -62,8 +62,7 @@ impl PolicyDir {
     pub fn load(dir: &Path) -> Result<Self, PolicyError> {
         let cfg = read_config(dir)?;
         let model_path = dir.join("model.safetensors");
-        let weights = read_safetensors(&model_path)?;
-        let dtype = StoredDtype::of_file(&model_path)?;
+        let (weights, dtype) = read_checkpoint(&model_path)?;
         check_keys(&cfg.param_specs(), &weights, &model_path.display().to_string())?;
         let stats = NormStats::read_policy_dir(dir)?;
         let vlm_dir = find_vlm_dir(dir, &cfg.vlm_model_name);

@@ -50,19 +50,31 @@ const NORMALIZER_PREFIXES: [&str; 3] = ["normalize_inputs", "normalize_targets",
 /// Reads every tensor of a safetensors file, converting BF16/F16 to f32, stripping the
 /// `model._orig_mod.` prefix torch.compile leaves and dropping legacy normaliser buffers.
 pub fn read_safetensors(path: &Path) -> Result<WeightMap, PolicyError> {
+    read_checkpoint(path).map(|(weights, _)| weights)
+}
+
+/// [`read_safetensors`], with the dtype the file stores its tensors in, from the same read.
+pub fn read_checkpoint(path: &Path) -> Result<(WeightMap, StoredDtype), PolicyError> {
     let bytes = std::fs::read(path).map_err(|e| PolicyError::io(path, e))?;
-    parse_safetensors(&bytes, path)
+    parse_checkpoint(&bytes, path)
 }
 
 /// [`read_safetensors`] of bytes already in memory (a download); `path` only names the source in errors.
 pub fn parse_safetensors(bytes: &[u8], path: &Path) -> Result<WeightMap, PolicyError> {
+    parse_checkpoint(bytes, path).map(|(weights, _)| weights)
+}
+
+fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<(WeightMap, StoredDtype), PolicyError> {
     let st = SafeTensors::deserialize(bytes)
         .map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
     let mut out = WeightMap::new();
+    // Every tensor read is a float one (any other dtype is refused below): bf16 when all of them are.
+    let mut all_bf16 = true;
     for (key, view) in st.tensors() {
         if NORMALIZER_PREFIXES.iter().any(|p| key.starts_with(p)) {
             continue;
         }
+        all_bf16 &= view.dtype() == Dtype::BF16;
         let data = decode_floats(view.dtype(), view.data()).ok_or_else(|| PolicyError::Dtype {
             path: path.into(),
             key: key.clone(),
@@ -74,7 +86,8 @@ pub fn parse_safetensors(bytes: &[u8], path: &Path) -> Result<WeightMap, PolicyE
         };
         out.insert(key, HostTensor::new(view.shape().to_vec(), data));
     }
-    Ok(out)
+    let dtype = if all_bf16 && !out.is_empty() { StoredDtype::Bf16 } else { StoredDtype::F32 };
+    Ok((out, dtype))
 }
 
 /// Little-endian F32/BF16/F16 bytes to f32; None for any other dtype.
@@ -110,34 +123,6 @@ impl StoredDtype {
             // Round to nearest even, as torch's `.to(torch.bfloat16)` does.
             Self::Bf16 => values.iter().flat_map(|&x| half::bf16::from_f32(x).to_le_bytes()).collect(),
         }
-    }
-
-    /// What a safetensors file stores: bf16 when every floating tensor is bf16, else f32. Reads the header only.
-    pub fn of_file(path: &Path) -> Result<Self, PolicyError> {
-        use std::io::Read;
-        let bad = |message: String| PolicyError::Safetensors { path: path.into(), message };
-        let mut file = std::fs::File::open(path).map_err(|e| PolicyError::io(path, e))?;
-        let mut len = [0u8; 8];
-        file.read_exact(&mut len).map_err(|e| PolicyError::io(path, e))?;
-        let len = u64::from_le_bytes(len);
-        if len > 100 << 20 {
-            return Err(bad(format!("header of {len} bytes")));
-        }
-        let mut header = vec![0u8; len as usize];
-        file.read_exact(&mut header).map_err(|e| PolicyError::io(path, e))?;
-        /// One tensor's entry of the header (`__metadata__` has no dtype and is skipped).
-        #[derive(serde::Deserialize)]
-        struct Entry {
-            dtype: Option<String>,
-        }
-        let entries: BTreeMap<String, Entry> =
-            serde_json::from_slice(&header).map_err(|e| bad(format!("header: {e}")))?;
-        let floats: Vec<&str> = entries
-            .values()
-            .filter_map(|e| e.dtype.as_deref())
-            .filter(|d| matches!(*d, "F32" | "BF16" | "F16" | "F64"))
-            .collect();
-        Ok(if !floats.is_empty() && floats.iter().all(|d| *d == "BF16") { Self::Bf16 } else { Self::F32 })
     }
 }
 

@@ -109,6 +109,14 @@ impl RunTokenizer {
         })
     }
 
+    /// Which tokenizer this is, for a person reading the run's start or an error.
+    fn describe(&self) -> String {
+        match self {
+            Self::Generated(word) => format!("word-level, of the dataset's task strings ({} ids)", word.vocab_size()),
+            Self::Checkpoint { backbone, .. } => format!("the checkpoint's, {}/tokenizer.json", backbone.display()),
+        }
+    }
+
     fn backbone(&self) -> Backbone<'_> {
         match self {
             Self::Generated(word) => Backbone::Generated(word),
@@ -258,16 +266,7 @@ fn describe_inputs(
             let _ = writeln!(out, "    normalised with mean [{}], std [{}]", fmt(&s.mean), fmt(&s.std));
         }
     }
-    let _ = write!(
-        out,
-        "  tokenizer: {}",
-        match tokenizer {
-            RunTokenizer::Generated(word) =>
-                format!("word-level, of the dataset's task strings ({} ids)", word.vocab_size()),
-            RunTokenizer::Checkpoint { backbone, .. } =>
-                format!("the checkpoint's, {}/tokenizer.json", backbone.display()),
-        }
-    );
+    let _ = write!(out, "  tokenizer: {}", tokenizer.describe());
     out
 }
 
@@ -313,10 +312,7 @@ impl SmolVlaWorkload {
         anyhow::ensure!(
             tokenizer.vocab_size() <= cfg.vlm.text_config.vocab_size,
             "the run's tokenizer ({}) has {} tokens, more than the {} of the token embedding of model size {}",
-            match &tokenizer {
-                RunTokenizer::Generated(_) => "the word-level one of the dataset's task strings".to_string(),
-                RunTokenizer::Checkpoint { backbone, .. } => format!("{}/tokenizer.json", backbone.display()),
-            },
+            tokenizer.describe(),
             tokenizer.vocab_size(),
             cfg.vlm.text_config.vocab_size,
             config.model_size
@@ -391,10 +387,10 @@ impl SmolVlaWorkload {
         }
         bar.finish_and_clear();
         let checkpoint_dtype = init.as_ref().map_or(StoredDtype::F32, |policy| policy.dtype);
-        let export_dtype = match (config.export_dtype, &init) {
-            (ExportDtype::F32, _) | (ExportDtype::Auto, None) => StoredDtype::F32,
-            (ExportDtype::Bf16, _) => StoredDtype::Bf16,
-            (ExportDtype::Auto, Some(policy)) => policy.dtype,
+        let export_dtype = match config.export_dtype {
+            ExportDtype::F32 => StoredDtype::F32,
+            ExportDtype::Bf16 => StoredDtype::Bf16,
+            ExportDtype::Auto => checkpoint_dtype,
         };
         let weights = match init {
             None => init_random(&cfg.param_specs(), config.seed),

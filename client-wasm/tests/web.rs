@@ -3,8 +3,8 @@
 #![cfg(target_arch = "wasm32")]
 
 use burn::tensor::Device;
-use fedvla_federation::codec::{decode_payload, encode_frames, encode_payload};
-use fedvla_federation::{NamedTensors, Reassembler, UpdateLimits};
+use fedvla_federation::codec::{UpdateValues, decode_payload, encode_delta_payload, encode_frames, encode_payload};
+use fedvla_federation::{NamedTensors, Reassembler, UpdateEncoding, UpdateLimits};
 use fedvla_policy::weights::init_random;
 use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
 use fedvla_sim::{Camera, Expert, Scene, render};
@@ -21,14 +21,21 @@ fn an_update_survives_chunking_and_reassembly_in_wasm() {
     let payload = encode_payload(&update);
     let frames = encode_frames(&payload, 7, 64);
     assert!(frames.len() > 1, "a 64-byte frame limit splits the update");
-    let limits = UpdateLimits::for_spec(&spec, 64, 0);
+    let limits = UpdateLimits::for_spec(&spec, UpdateEncoding::F32, 64, 0);
     let mut reassembler = Reassembler::start(&frames[0], limits).unwrap();
     for frame in &frames[1..] {
         reassembler.push(frame).unwrap();
     }
     assert!(reassembler.is_complete());
     assert_eq!(reassembler.header().round, 7);
-    assert_eq!(decode_payload(&reassembler.finish().unwrap(), &spec).unwrap(), update);
+    let decoded = decode_payload(&reassembler.finish().unwrap(), &spec, UpdateEncoding::F32).unwrap();
+    assert_eq!(decoded, UpdateValues::Model(update.clone()));
+
+    // A compressed delta (half floats and int8 blocks decode the same in wasm).
+    for encoding in [UpdateEncoding::Bf16, UpdateEncoding::Int8, UpdateEncoding::Topk { fraction: 0.5 }] {
+        let payload = encode_delta_payload(&mut update.clone(), encoding);
+        assert!(matches!(decode_payload(&payload, &spec, encoding), Ok(UpdateValues::Delta(_))), "{encoding:?}");
+    }
 }
 
 #[wasm_bindgen_test]

@@ -260,6 +260,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             deadline_ms: config.round_deadline_ms,
             eval_request: false,
             rollout: None,
+            update_encoding: fedvla_federation::UpdateEncoding::F32,
         };
         // The optimizer's moments carry over from round to round: one continuous run.
         let before = bar.position();

@@ -3,9 +3,11 @@
 mod common;
 
 use common::*;
+use fedvla_aggregator::records::read_metrics;
 use fedvla_aggregator::run_dir::{RunDir, TRAINABLE_FILE};
-use fedvla_federation::TrainOutput;
-use fedvla_federation::codec::HEADER_LEN;
+use fedvla_federation::codec::{HEADER_LEN, payload_len};
+use fedvla_federation::protocol::INT8_BLOCK;
+use fedvla_federation::{TrainOutput, UpdateEncoding};
 use fedvla_workloads::linreg;
 
 #[tokio::test]
@@ -41,8 +43,9 @@ async fn three_clients_two_rounds() {
 
     // Only the trainable head crosses the wire: payload (names, shapes, f32 values) plus one header per frame.
     let spec = linreg::initial_model(0).spec();
-    let payload: usize =
-        4 + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
+    let payload: usize = 1
+        + 4
+        + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
     let frames = payload.div_ceil(cfg.max_frame_bytes - HEADER_LEN);
     assert!(frames > 1, "the test should exercise chunking");
     let expected_bytes = (payload + frames * HEADER_LEN) as u64;
@@ -70,6 +73,94 @@ async fn three_clients_two_rounds() {
     assert!(loss(2) < loss(1) && loss(1) < loss(0), "{} {} {}", loss(0), loss(1), loss(2));
     assert!(dir.join("global_model/round_0").join(TRAINABLE_FILE).exists());
     assert!(dir.join("config.toml").exists());
+}
+
+/// How far an encoding may move one value `d` of a client's delta whose tensor's values are `all` (point 3 of
+/// the compression issue): f16 and bf16 round to nearest, int8 to its block's absmax / 254, and top-k drops at
+/// most values no larger than the smallest it keeps.
+fn encoding_error_bound(encoding: UpdateEncoding, all: &[f32], index: usize) -> f32 {
+    let d = all[index].abs();
+    match encoding {
+        UpdateEncoding::F32 => 0.0,
+        UpdateEncoding::F16 => d * 2f32.powi(-11) + 6e-8,
+        UpdateEncoding::Bf16 => d * 2f32.powi(-8),
+        UpdateEncoding::Int8 => {
+            let block = &all[index / INT8_BLOCK * INT8_BLOCK..all.len().min((index / INT8_BLOCK + 1) * INT8_BLOCK)];
+            block.iter().fold(0f32, |m, v| m.max(v.abs())) / 254.0
+        }
+        UpdateEncoding::Topk { fraction } => {
+            let mut magnitudes: Vec<f32> = all.iter().map(|v| v.abs()).collect();
+            magnitudes.sort_by(|a, b| b.total_cmp(a));
+            magnitudes[UpdateEncoding::topk_count(fraction, all.len()) - 1]
+        }
+    }
+}
+
+/// Each update encoding over loopback: the global model after round 1 is the example-weighted mean of what the
+/// clients trained, within the encoding's bound of every value; every update's bytes in `metrics.jsonl` are the
+/// encoding's payload in frames; and a compressed run still learns.
+#[tokio::test]
+async fn every_update_encoding_aggregates_within_its_bound() {
+    let spec = linreg::initial_model(0).spec();
+    let f32_bytes = payload_len(&spec, UpdateEncoding::F32);
+    for name in ["f32", "f16", "bf16", "int8", "topk"] {
+        let base = tempfile::tempdir().unwrap();
+        let cfg = config(&format!("update-encoding={name} topk-fraction=0.3 max-frame-bytes=4096"));
+        let encoding = cfg.encoding();
+        let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+        let handle = start(cfg.clone(), run_dir.clone()).await;
+        let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
+        let status = handle.finish().await.unwrap();
+        assert_eq!(status.completed_rounds, 2, "{name}");
+        assert!(status.rejections.is_empty(), "{name}: {:?}", status.rejections);
+        let mut round_one = Vec::new();
+        for (task, rec) in clients {
+            task.await.unwrap().unwrap();
+            round_one.extend(rec.lock().unwrap().iter().filter(|(r, _)| *r == 1).map(|(_, u)| u.clone()));
+        }
+        let global = run_dir.load_model(0).unwrap();
+        let aggregate = run_dir.load_model(1).unwrap();
+        let exact = weighted_mean(&round_one);
+        let total: f32 = round_one.iter().map(|u| u.examples as f32).sum();
+        for (tensor, t) in exact.iter() {
+            let deltas: Vec<Vec<f32>> = round_one
+                .iter()
+                .map(|u| {
+                    u.update
+                        .get(tensor)
+                        .unwrap()
+                        .values
+                        .iter()
+                        .zip(&global.get(tensor).unwrap().values)
+                        .map(|(u, g)| u - g)
+                        .collect()
+                })
+                .collect();
+            for (i, want) in t.values.iter().enumerate() {
+                let bound: f32 = round_one
+                    .iter()
+                    .zip(&deltas)
+                    .map(|(u, d)| u.examples as f32 / total * encoding_error_bound(encoding, d, i))
+                    .sum();
+                let got = aggregate.get(tensor).unwrap().values[i];
+                assert!(
+                    (got - want).abs() <= bound * 1.001 + 1e-6,
+                    "{name}: {tensor}[{i}] {got} against {want} (bound {bound})"
+                );
+            }
+        }
+        let payload = payload_len(&spec, encoding);
+        let expected = (payload + payload.div_ceil(cfg.max_frame_bytes - HEADER_LEN) * HEADER_LEN) as u64;
+        let lines = read_metrics(run_dir.path()).unwrap();
+        for line in &lines[1..] {
+            assert!(line.clients.iter().all(|c| c.update_bytes == Some(expected)), "{name}: {:?}", line.clients);
+        }
+        if encoding != UpdateEncoding::F32 {
+            assert!(payload < f32_bytes, "{name}: a payload of {payload} bytes against f32's {f32_bytes}");
+        }
+        let loss = |i: usize| lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).unwrap().heldout_loss;
+        assert!(loss(2) < loss(0), "{name}: held-out loss {} -> {}", loss(0), loss(2));
+    }
 }
 
 async fn final_model(seed: u64) -> Vec<u8> {

@@ -2,6 +2,7 @@
 
 use std::path::Path;
 
+use fedvla_federation::UpdateEncoding;
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, thiserror::Error)]
@@ -115,6 +116,8 @@ pub struct RunConfig {
     pub attackers: usize,
     pub attack: AttackKind,
     pub attack_strength: f64,
+    pub update_encoding: String,
+    pub topk_fraction: f64,
     pub workload: WorkloadKind,
     pub dataset: String,
     pub dataset_episodes: usize,
@@ -218,6 +221,11 @@ impl RunConfig {
     }
 
     /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
+    /// How clients encode their updates (`update-encoding`, `topk-fraction`).
+    pub fn encoding(&self) -> UpdateEncoding {
+        UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).expect("validated with the config")
+    }
+
     pub fn sampled_clients(&self, connected: usize) -> usize {
         ((self.fraction_fit * connected as f64).ceil() as usize).max(self.min_fit).min(connected)
     }
@@ -292,6 +300,7 @@ impl RunConfig {
         if !(self.clip_update_norm.is_finite() && self.clip_update_norm >= 0.0) {
             return fail(format!("clip-update-norm must be 0 (off) or positive, got {}", self.clip_update_norm));
         }
+        UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).map_err(ConfigError::Invalid)?;
         if !(0.0..0.5).contains(&self.trim_beta) {
             return fail(format!("trim-beta must be in [0, 0.5), got {}", self.trim_beta));
         }

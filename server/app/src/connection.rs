@@ -9,7 +9,7 @@ use std::time::Duration;
 use axum::extract::ws::Message;
 use fedvla_federation::codec::decode_payload;
 use fedvla_federation::{
-    ClientMessage, CodecError, ErrorCode, NamedTensors, PROTOCOL_VERSION, Reassembler, ServerMessage,
+    ClientMessage, CodecError, ErrorCode, PROTOCOL_VERSION, Reassembler, ServerMessage, UpdateValues,
 };
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
@@ -274,19 +274,19 @@ where
         else {
             unreachable!("checked above")
         };
-        let spec = Arc::clone(&self.state.spec);
-        let decoded = tokio::task::spawn_blocking(move || -> Result<NamedTensors, CodecError> {
-            decode_payload(&reassembler.finish()?, &spec)
+        let (spec, encoding) = (Arc::clone(&self.state.spec), self.state.encoding);
+        let decoded = tokio::task::spawn_blocking(move || -> Result<UpdateValues, CodecError> {
+            decode_payload(&reassembler.finish()?, &spec, encoding)
         })
         .await
         .expect("decoding does not panic");
         match decoded {
-            Ok(tensors) => {
+            Ok(values) => {
                 let client_id = self.client_id.expect("joined");
                 tracing::debug!(client_id, round = header.round, bytes, "update received");
                 let update = UpdateReceived {
                     round: header.round,
-                    tensors,
+                    values,
                     claimed_examples: header.examples,
                     train_loss: header.train_loss,
                     bytes,
@@ -351,7 +351,7 @@ mod tests {
     use fedvla_aggregator::run_dir::RunDir;
     use fedvla_aggregator::sessions::Sessions;
     use fedvla_federation::codec::{DEFAULT_MAX_FRAME_BYTES, encode_payload, encode_update};
-    use fedvla_federation::{Capabilities, UpdateLimits};
+    use fedvla_federation::{Capabilities, NamedTensors, UpdateEncoding, UpdateLimits};
     use futures_util::{sink, stream};
     use tokio_util::sync::CancellationToken;
 
@@ -390,7 +390,8 @@ mod tests {
             let state = SocketState {
                 events: events_tx,
                 cancel: cancel.clone(),
-                limits: UpdateLimits::for_spec(&spec, DEFAULT_MAX_FRAME_BYTES, 0),
+                encoding: UpdateEncoding::F32,
+                limits: UpdateLimits::for_spec(&spec, UpdateEncoding::F32, DEFAULT_MAX_FRAME_BYTES, 0),
                 keepalive: KEEPALIVE,
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
@@ -453,7 +454,7 @@ mod tests {
         assert!(matches!(h.events.recv().await, Some(Event::Uploading { client_id: 1 })));
         match h.events.recv().await {
             Some(Event::Update { client_id: 1, update }) => {
-                assert_eq!(update.tensors, tensors(0.5));
+                assert_eq!(update.values, UpdateValues::Model(tensors(0.5)));
                 assert_eq!((update.round, update.claimed_examples, update.train_loss), (3, 5, 0.25));
                 let frames = encode_update(&tensors(0.5), 3, 40);
                 assert_eq!(update.bytes, frames.iter().map(|f| f.len() as u64).sum::<u64>());

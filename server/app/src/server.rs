@@ -72,7 +72,8 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     let controls = Controls::new(&config);
     let console = ConsoleHub::new(operator_token.clone(), controls.clone(), status.clone());
     let cancel = CancellationToken::new();
-    let limits = UpdateLimits::for_spec(&spec, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
+    let encoding = config.encoding();
+    let limits = UpdateLimits::for_spec(&spec, encoding, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
     let http_limits = HttpLimits {
         max_connections: config.max_connections,
         header_read_timeout: Duration::from_millis(config.header_read_timeout_ms),
@@ -85,6 +86,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             events: events_tx,
             cancel: cancel.clone(),
             spec,
+            encoding,
             limits,
             keepalive: http_limits.keepalive(),
             auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),

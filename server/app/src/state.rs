@@ -11,7 +11,7 @@ use fedvla_aggregator::coordinator::{Event, PublishedModel};
 use fedvla_aggregator::registry::Volunteers;
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_aggregator::sessions::Sessions;
-use fedvla_federation::{TensorSpec, UpdateLimits};
+use fedvla_federation::{TensorSpec, UpdateEncoding, UpdateLimits};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
@@ -31,6 +31,8 @@ pub struct SocketState {
     pub events: mpsc::Sender<Event>,
     pub cancel: CancellationToken,
     pub spec: Arc<TensorSpec>,
+    /// The run's update encoding: updates in another are refused.
+    pub encoding: UpdateEncoding,
     pub limits: UpdateLimits,
     /// How often an idle WebSocket is pinged (well within the listener's idle timeout).
     pub keepalive: Duration,

@@ -1,6 +1,7 @@
 //! Subcommands. To add one: create `src/cmd/<name>.rs` with `pub struct Args` (clap::Args) and
 //! `pub fn run(args: Args) -> anyhow::Result<()>`, then add a variant to [`Command`] and an arm to [`run`].
 
+mod bench;
 mod eval;
 mod experiment;
 mod gen_data;
@@ -27,6 +28,8 @@ pub enum Command {
     Experiment(experiment::Args),
     /// Roll a policy (or the scripted expert) out in the sim: success rate, videos, results.json.
     Eval(eval::Args),
+    /// Measure what a client-round costs: update bytes per encoding and model size, codec throughput.
+    Bench(bench::Args),
     /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
     Parity(parity::Args),
     /// Record scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset.
@@ -42,6 +45,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Experiment(args) => experiment::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Parity(args) => parity::run(args),
+        Command::Bench(args) => bench::run(args),
         Command::GenData(args) => gen_data::run(args),
     }
 }

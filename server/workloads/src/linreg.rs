@@ -286,6 +286,7 @@ mod tests {
             deadline_ms: 1000,
             eval_request: false,
             rollout: None,
+            update_encoding: fedvla_federation::UpdateEncoding::F32,
         }
     }
 

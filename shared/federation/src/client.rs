@@ -5,11 +5,11 @@
 
 use std::future::Future;
 
-use crate::codec::{encode_frames, encode_payload};
+use crate::codec::{encode_delta_payload, encode_frames, encode_payload};
 use crate::error::{BoxError, TensorError};
 use crate::protocol::{
     Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
-    ServerMessage,
+    ServerMessage, UpdateEncoding,
 };
 use crate::tensors::NamedTensors;
 
@@ -193,6 +193,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     on_event(ClientEvent::Joined { client_id });
     let mut summary = ClientSummary { client_id, ..ClientSummary::default() };
     let mut global: Option<(u64, NamedTensors)> = None;
+    let mut encoder = UpdateEncoder::default();
     loop {
         match link.recv().await? {
             ServerMessage::RoundTask(task) => {
@@ -204,7 +205,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                     _ => link.fetch_model(task.model_version).await?,
                 };
                 trainer.set_global(&tensors).map_err(ClientError::Trainer)?;
-                global = Some((task.model_version, tensors));
+                let global = &global.insert((task.model_version, tensors)).1;
                 if task.eval_request {
                     let eval = trainer.evaluate().await.map_err(ClientError::Trainer)?;
                     link.send(&ClientMessage::EvalResult {
@@ -246,7 +247,9 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                     examples: out.examples,
                     train_loss: out.train_loss,
                 });
-                let payload = encode_payload(&out.update);
+                let payload = encoder.payload(&out.update, global, task.update_encoding).map_err(|e| {
+                    ClientError::Trainer(format!("the trained tensors do not match the global model: {e}").into())
+                })?;
                 link.send(&ClientMessage::UpdateHeader {
                     round: task.round,
                     examples: out.examples,
@@ -298,6 +301,35 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     }
 }
 
+/// A client's updates across rounds: the trained tensors as each task's encoding asks, and top-k's residual (what
+/// earlier rounds left out), added to the next round's delta so that nothing is lost for good (error feedback).
+#[derive(Debug, Default)]
+struct UpdateEncoder {
+    residual: Option<NamedTensors>,
+}
+
+impl UpdateEncoder {
+    fn payload(
+        &mut self,
+        trained: &NamedTensors,
+        global: &NamedTensors,
+        encoding: UpdateEncoding,
+    ) -> Result<Vec<u8>, TensorError> {
+        if encoding == UpdateEncoding::F32 {
+            self.residual = None;
+            return Ok(encode_payload(trained));
+        }
+        let mut delta = trained.zip_map(global, |t, g| t - g)?;
+        let feedback = matches!(encoding, UpdateEncoding::Topk { .. });
+        if let Some(residual) = self.residual.as_ref().filter(|_| feedback) {
+            delta = delta.zip_map(residual, |d, r| d + r)?;
+        }
+        let payload = encode_delta_payload(&mut delta, encoding);
+        self.residual = feedback.then_some(delta);
+        Ok(payload)
+    }
+}
+
 /// A transport with byte counters and JSON on top.
 struct Link<'a, T> {
     transport: &'a mut T,
@@ -325,5 +357,50 @@ impl<T: ClientTransport> Link<'_, T> {
             NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Model { version, source })?;
         tensors.validate(&tensors.spec()).map_err(|source| ClientError::Model { version, source })?;
         Ok(tensors)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codec::{UpdateValues, decode_payload};
+
+    /// Top-k's error feedback over three rounds: whatever a round leaves out goes out later, so what the server
+    /// received plus the client's residual is exactly the sum of the rounds' deltas.
+    #[test]
+    fn topk_error_feedback_carries_what_each_round_left_out() {
+        let mut global = NamedTensors::new();
+        global.insert("w", vec![8], vec![0.0; 8]).unwrap();
+        let step = [0.8f32, 0.1, -0.05, 0.3, 0.02, -0.6, 0.2, 0.01];
+        let encoding = UpdateEncoding::Topk { fraction: 0.25 };
+        let mut encoder = UpdateEncoder::default();
+        let mut received = vec![0f32; 8];
+        let mut sent_indices = Vec::new();
+        for round in 1..=3 {
+            let mut trained = global.clone();
+            for (t, s) in trained.get_mut("w").unwrap().values.iter_mut().zip(step) {
+                *t += s;
+            }
+            let payload = encoder.payload(&trained, &global, encoding).unwrap();
+            let Ok(UpdateValues::Delta(delta)) = decode_payload(&payload, &global.spec(), encoding) else {
+                panic!("round {round}: top-k sends a delta")
+            };
+            let values = &delta.get("w").unwrap().values;
+            sent_indices.push((0..8).filter(|&i| values[i] != 0.0).collect::<Vec<_>>());
+            for (r, d) in received.iter_mut().zip(values) {
+                *r += d;
+            }
+            let residual = &encoder.residual.as_ref().unwrap().get("w").unwrap().values;
+            for i in 0..8 {
+                let total = step[i] * round as f32;
+                assert!((received[i] + residual[i] - total).abs() < 1e-6, "round {round}, value {i}");
+            }
+        }
+        // Round 1 sends the two largest; the small values' residuals grow until they are sent too.
+        assert_eq!(sent_indices[0], [0, 5]);
+        assert_ne!(sent_indices[1], sent_indices[0]);
+        // Another encoding drops the residual: it only ever belongs to top-k.
+        encoder.payload(&global, &global, UpdateEncoding::Int8).unwrap();
+        assert!(encoder.residual.is_none());
     }
 }

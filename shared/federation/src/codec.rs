@@ -1,14 +1,17 @@
 //! Binary update codec: [`NamedTensors`] <-> payload <-> frames.
 //!
-//! Payload (little-endian): `u32` tensor count, then per tensor in name order `u32` name length, UTF-8 name,
-//! `u32` rank, `u64` per dimension, and the `f32` values.
+//! Payload (little-endian): `u8` encoding (0 f32, 1 f16, 2 bf16, 3 int8, 4 top-k: the task's
+//! [`UpdateEncoding`]), `u32` tensor count, then per tensor in name order `u32` name length, UTF-8 name, `u32` rank,
+//! `u64` per dimension, and its values as [`crate::quantize`] lays them out. An f32 payload holds the trained
+//! tensors; every other encoding holds their delta from the round's global model.
 //!
 //! Each binary WebSocket frame is a [`FrameHeader`] of [`HEADER_LEN`] bytes followed by one chunk of the payload:
 //! magic `FVLA`, `u16` protocol version, `u64` round, `u32` chunk index, `u32` chunk count, `u64` payload length,
 //! `u32` CRC32 of the whole payload, `u32` chunk length.
 
-use crate::error::CodecError;
-use crate::protocol::PROTOCOL_VERSION;
+use crate::error::{CodecError, TensorError};
+use crate::protocol::{PROTOCOL_VERSION, UpdateEncoding};
+use crate::quantize::{encoded_len, read_values, write_values};
 use crate::tensors::{NamedTensors, TensorSpec};
 
 pub const MAGIC: [u8; 4] = *b"FVLA";
@@ -64,21 +67,66 @@ impl FrameHeader {
     }
 }
 
-/// Length of the payload [`encode_payload`] makes for tensors of this spec.
-pub fn payload_len(spec: &TensorSpec) -> usize {
-    4 + spec.iter().map(|(name, shape)| 4 + name.len() + 4 + 8 * shape.len()).sum::<usize>() + spec.byte_size()
+/// What a decoded update holds.
+#[derive(Debug, Clone, PartialEq)]
+pub enum UpdateValues {
+    /// The trained tensors (f32 payloads).
+    Model(NamedTensors),
+    /// The trained tensors' delta from the round's global model (every compressed encoding).
+    Delta(NamedTensors),
 }
 
+impl UpdateValues {
+    /// The trained tensors: the model itself, or `global + delta`, checked finite (a finite delta added to a
+    /// finite model can still overflow).
+    pub fn into_model(self, global: &NamedTensors) -> Result<NamedTensors, TensorError> {
+        match self {
+            Self::Model(model) => Ok(model),
+            Self::Delta(delta) => {
+                let model = global.zip_map(&delta, |g, d| g + d)?;
+                model.validate(&global.spec())?;
+                Ok(model)
+            }
+        }
+    }
+}
+
+fn encoding_tag(encoding: UpdateEncoding) -> u8 {
+    match encoding {
+        UpdateEncoding::F32 => 0,
+        UpdateEncoding::F16 => 1,
+        UpdateEncoding::Bf16 => 2,
+        UpdateEncoding::Int8 => 3,
+        UpdateEncoding::Topk { .. } => 4,
+    }
+}
+
+/// Length of the payload of tensors of this spec under `encoding` (top-k at its full count per tensor): what the
+/// server accepts at most.
+pub fn payload_len(spec: &TensorSpec, encoding: UpdateEncoding) -> usize {
+    1 + 4
+        + spec
+            .iter()
+            .map(|(name, shape)| 4 + name.len() + 4 + 8 * shape.len() + encoded_len(encoding, shape.iter().product()))
+            .sum::<usize>()
+}
+
+fn write_tensor_header(out: &mut Vec<u8>, name: &str, shape: &[usize]) {
+    out.extend_from_slice(&(name.len() as u32).to_le_bytes());
+    out.extend_from_slice(name.as_bytes());
+    out.extend_from_slice(&(shape.len() as u32).to_le_bytes());
+    for &d in shape {
+        out.extend_from_slice(&(d as u64).to_le_bytes());
+    }
+}
+
+/// The f32 payload of trained tensors.
 pub fn encode_payload(tensors: &NamedTensors) -> Vec<u8> {
-    let mut out = Vec::with_capacity(payload_len(&tensors.spec()));
+    let mut out = Vec::with_capacity(payload_len(&tensors.spec(), UpdateEncoding::F32));
+    out.push(encoding_tag(UpdateEncoding::F32));
     out.extend_from_slice(&(tensors.len() as u32).to_le_bytes());
     for (name, t) in tensors.iter() {
-        out.extend_from_slice(&(name.len() as u32).to_le_bytes());
-        out.extend_from_slice(name.as_bytes());
-        out.extend_from_slice(&(t.shape.len() as u32).to_le_bytes());
-        for &d in &t.shape {
-            out.extend_from_slice(&(d as u64).to_le_bytes());
-        }
+        write_tensor_header(&mut out, name, &t.shape);
         for v in &t.values {
             out.extend_from_slice(&v.to_le_bytes());
         }
@@ -86,9 +134,36 @@ pub fn encode_payload(tensors: &NamedTensors) -> Vec<u8> {
     out
 }
 
-/// Parses a payload and validates it against `spec` (names, shapes, finite values).
-pub fn decode_payload(payload: &[u8], spec: &TensorSpec) -> Result<NamedTensors, CodecError> {
+/// The payload of a delta from the round's global model under a compressed `encoding`, leaving in `delta` what
+/// the server will not get back (top-k's error feedback carries it to the next round).
+///
+/// # Panics
+/// On [`UpdateEncoding::F32`], whose payloads hold the trained tensors ([`encode_payload`]).
+pub fn encode_delta_payload(delta: &mut NamedTensors, encoding: UpdateEncoding) -> Vec<u8> {
+    assert!(encoding != UpdateEncoding::F32, "f32 updates carry the trained tensors, not a delta");
+    let spec = delta.spec();
+    let mut out = Vec::with_capacity(payload_len(&spec, encoding));
+    out.push(encoding_tag(encoding));
+    out.extend_from_slice(&(delta.len() as u32).to_le_bytes());
+    for ((name, shape), (_, values)) in spec.iter().zip(delta.iter_mut()) {
+        write_tensor_header(&mut out, name, shape);
+        write_values(encoding, values, &mut out);
+    }
+    out
+}
+
+/// Parses a payload of the run's `encoding` and validates it against `spec` (names, shapes, finite values).
+pub fn decode_payload(payload: &[u8], spec: &TensorSpec, encoding: UpdateEncoding) -> Result<UpdateValues, CodecError> {
     let mut r = Reader::new(payload);
+    let tag = r.u8()?;
+    if tag != encoding_tag(encoding) {
+        return Err(CodecError::Malformed(format!(
+            "update encoded as {}, the run asks for {} ({})",
+            tag,
+            encoding_tag(encoding),
+            encoding.name()
+        )));
+    }
     let count = r.u32()? as usize;
     let mut out = NamedTensors::new();
     for _ in 0..count {
@@ -101,13 +176,20 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec) -> Result<NamedTensors,
             return Err(CodecError::Malformed(format!("tensor `{name}` has rank {rank} (max {MAX_RANK})")));
         }
         let shape = (0..rank).map(|_| r.u64().map(|d| d as usize)).collect::<Result<Vec<_>, _>>()?;
+        // Every tensor of the spec is at most the spec's size: a larger shape is refused before it is allocated.
         let numel = shape
             .iter()
             .try_fold(1usize, |acc, &d| acc.checked_mul(d))
-            .filter(|n| n.checked_mul(4).is_some_and(|b| b <= r.remaining()))
-            .ok_or_else(|| CodecError::Malformed(format!("tensor `{name}` of shape {shape:?} overruns the payload")))?;
-        let values =
-            r.bytes(numel * 4)?.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+            .filter(|&n| n <= spec.shape(&name).map_or(0, |s| s.iter().product()))
+            .ok_or_else(|| match spec.shape(&name) {
+                Some(expected) => CodecError::Tensor(TensorError::ShapeMismatch {
+                    name: name.clone(),
+                    expected: expected.to_vec(),
+                    got: shape.clone(),
+                }),
+                None => CodecError::Tensor(TensorError::Unexpected(name.clone())),
+            })?;
+        let values = read_values(encoding, numel, &mut r, &name)?;
         if out.get(&name).is_some() {
             return Err(CodecError::Malformed(format!("tensor `{name}` appears twice")));
         }
@@ -117,7 +199,10 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec) -> Result<NamedTensors,
         return Err(CodecError::Malformed(format!("{} trailing bytes after the last tensor", r.remaining())));
     }
     out.validate(spec)?;
-    Ok(out)
+    Ok(match encoding {
+        UpdateEncoding::F32 => UpdateValues::Model(out),
+        _ => UpdateValues::Delta(out),
+    })
 }
 
 /// Splits an encoded payload into frames of at most `max_frame_bytes` (header included).
@@ -161,10 +246,10 @@ pub struct UpdateLimits {
 }
 
 impl UpdateLimits {
-    /// Limits for updates of `spec`: the exact payload plus `headroom` bytes (so an extra tensor is reported as
-    /// unexpected rather than oversized).
-    pub fn for_spec(spec: &TensorSpec, max_frame_bytes: usize, headroom: u64) -> Self {
-        Self { max_frame_bytes, max_payload_bytes: payload_len(spec) as u64 + headroom }
+    /// Limits for updates of `spec` under `encoding`: the longest payload plus `headroom` bytes (so an extra
+    /// tensor is reported as unexpected rather than oversized).
+    pub fn for_spec(spec: &TensorSpec, encoding: UpdateEncoding, max_frame_bytes: usize, headroom: u64) -> Self {
+        Self { max_frame_bytes, max_payload_bytes: payload_len(spec, encoding) as u64 + headroom }
     }
 }
 
@@ -267,21 +352,22 @@ impl Reassembler {
     }
 }
 
-struct Reader<'a> {
+/// Reads a payload front to back; every read past its end is [`CodecError::Truncated`].
+pub(crate) struct Reader<'a> {
     buf: &'a [u8],
     pos: usize,
 }
 
 impl<'a> Reader<'a> {
-    fn new(buf: &'a [u8]) -> Self {
+    pub(crate) fn new(buf: &'a [u8]) -> Self {
         Self { buf, pos: 0 }
     }
 
-    fn remaining(&self) -> usize {
+    pub(crate) fn remaining(&self) -> usize {
         self.buf.len() - self.pos
     }
 
-    fn bytes(&mut self, n: usize) -> Result<&'a [u8], CodecError> {
+    pub(crate) fn bytes(&mut self, n: usize) -> Result<&'a [u8], CodecError> {
         if self.remaining() < n {
             return Err(CodecError::Truncated { needed: self.pos + n, got: self.buf.len() });
         }
@@ -290,11 +376,15 @@ impl<'a> Reader<'a> {
         Ok(out)
     }
 
+    fn u8(&mut self) -> Result<u8, CodecError> {
+        Ok(self.bytes(1)?[0])
+    }
+
     fn u16(&mut self) -> Result<u16, CodecError> {
         Ok(u16::from_le_bytes(self.bytes(2)?.try_into().expect("2 bytes")))
     }
 
-    fn u32(&mut self) -> Result<u32, CodecError> {
+    pub(crate) fn u32(&mut self) -> Result<u32, CodecError> {
         Ok(u32::from_le_bytes(self.bytes(4)?.try_into().expect("4 bytes")))
     }
 
@@ -317,7 +407,7 @@ mod tests {
     }
 
     fn limits(spec: &TensorSpec) -> UpdateLimits {
-        UpdateLimits::for_spec(spec, 100, 64)
+        UpdateLimits::for_spec(spec, UpdateEncoding::F32, 100, 64)
     }
 
     fn reassemble(frames: &[Vec<u8>], limits: UpdateLimits) -> Result<Vec<u8>, CodecError> {
@@ -335,9 +425,9 @@ mod tests {
         assert!(frames.len() > 5);
         assert!(frames.iter().all(|f| f.len() <= 100));
         let payload_bytes: usize = frames.iter().map(|f| f.len() - HEADER_LEN).sum();
-        assert_eq!(payload_bytes, payload_len(&t.spec()));
+        assert_eq!(payload_bytes, payload_len(&t.spec(), UpdateEncoding::F32));
         let payload = reassemble(&frames, limits(&t.spec())).unwrap();
-        assert_eq!(decode_payload(&payload, &t.spec()).unwrap(), t);
+        assert_eq!(decode_payload(&payload, &t.spec(), UpdateEncoding::F32).unwrap(), UpdateValues::Model(t));
         assert_eq!(FrameHeader::parse(&frames[0]).unwrap().round, 7);
     }
 
@@ -380,17 +470,64 @@ mod tests {
         let spec = t.spec();
         let mut nan = t.clone();
         nan.get_mut("expert.w").unwrap().values[3] = f32::INFINITY;
-        let err = decode_payload(&encode_payload(&nan), &spec).unwrap_err();
+        let err = decode_payload(&encode_payload(&nan), &spec, UpdateEncoding::F32).unwrap_err();
         assert_eq!(err, CodecError::Tensor(TensorError::NonFinite { name: "expert.w".into(), index: 3 }));
 
         let mut extra = t.clone();
         extra.insert("vision.frozen", vec![1], vec![0.0]).unwrap();
-        assert_eq!(decode_payload(&encode_payload(&extra), &spec).unwrap_err().code(), ErrorCode::UnexpectedTensor);
+        assert_eq!(
+            decode_payload(&encode_payload(&extra), &spec, UpdateEncoding::F32).unwrap_err().code(),
+            ErrorCode::UnexpectedTensor
+        );
 
         let mut payload = encode_payload(&t);
         payload.push(0);
-        assert_eq!(decode_payload(&payload, &spec).unwrap_err().code(), ErrorCode::MalformedFrame);
+        assert_eq!(decode_payload(&payload, &spec, UpdateEncoding::F32).unwrap_err().code(), ErrorCode::MalformedFrame);
         let payload = encode_payload(&t);
-        assert!(matches!(decode_payload(&payload[..payload.len() - 1], &spec), Err(CodecError::Malformed(_))));
+        assert!(matches!(
+            decode_payload(&payload[..payload.len() - 1], &spec, UpdateEncoding::F32),
+            Err(CodecError::Malformed(_))
+        ));
+
+        let mut oversized = NamedTensors::new();
+        oversized.insert("expert.b", vec![1 << 20], vec![0.0; 1 << 20]).unwrap();
+        let err = decode_payload(&encode_payload(&oversized), &spec, UpdateEncoding::F32).unwrap_err();
+        assert_eq!(err.code(), ErrorCode::ShapeMismatch);
+    }
+
+    #[test]
+    fn compressed_deltas_round_trip_and_rebuild_the_model() {
+        let global = tensors();
+        let trained = global.zip_map(&global, |g, _| g * 1.01 + 0.003).unwrap();
+        let spec = global.spec();
+        for encoding in
+            [UpdateEncoding::F16, UpdateEncoding::Bf16, UpdateEncoding::Int8, UpdateEncoding::Topk { fraction: 0.1 }]
+        {
+            let mut delta = trained.zip_map(&global, |t, g| t - g).unwrap();
+            let exact = delta.clone();
+            let payload = encode_delta_payload(&mut delta, encoding);
+            assert_eq!(payload.len(), payload_len(&spec, encoding), "{encoding:?}");
+            let UpdateValues::Delta(received) = decode_payload(&payload, &spec, encoding).unwrap() else {
+                panic!("{encoding:?} payloads hold deltas")
+            };
+            // What was sent plus what was kept back is the exact delta.
+            let rebuilt = received.zip_map(&delta, |s, r| s + r).unwrap();
+            for ((_, a), (_, b)) in rebuilt.iter().zip(exact.iter()) {
+                for (x, y) in a.values.iter().zip(&b.values) {
+                    assert!((x - y).abs() <= 1e-6, "{encoding:?}: {x} against {y}");
+                }
+            }
+            let model = UpdateValues::Delta(received).into_model(&global).unwrap();
+            assert_eq!(model.spec(), spec);
+            let other = if encoding == UpdateEncoding::Int8 { UpdateEncoding::F16 } else { UpdateEncoding::Int8 };
+            let err = decode_payload(&payload, &spec, other).unwrap_err();
+            assert!(matches!(err, CodecError::Malformed(m) if m.contains("the run asks for")), "{encoding:?}");
+        }
+        assert!(payload_len(&spec, UpdateEncoding::Int8) < payload_len(&spec, UpdateEncoding::F16));
+
+        let mut huge = global.clone();
+        huge.get_mut("expert.b").unwrap().values[0] = f32::MAX;
+        let overflow = UpdateValues::Delta(huge).into_model(&global.zip_map(&global, |_, _| f32::MAX).unwrap());
+        assert!(matches!(overflow, Err(TensorError::NonFinite { .. })));
     }
 }

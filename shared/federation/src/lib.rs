@@ -8,6 +8,7 @@ pub mod codec;
 pub mod error;
 pub mod evaluate;
 pub mod protocol;
+mod quantize;
 pub mod seed;
 pub mod strategy;
 pub mod tensors;
@@ -16,12 +17,12 @@ pub use client::{
     ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput, LocalTrainer, RolloutOutput,
     TrainOutput, Video, run_client,
 };
-pub use codec::{Reassembler, UpdateLimits};
+pub use codec::{Reassembler, UpdateLimits, UpdateValues};
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator};
 pub use protocol::{
     Capabilities, ClientMessage, ErrorCode, LrSchedule, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics,
-    RoundTask, ServerMessage, StrategyParams, VolunteerSetup, WorkloadKind, routes,
+    RoundTask, ServerMessage, StrategyParams, UpdateEncoding, VolunteerSetup, WorkloadKind, routes,
 };
 pub use seed::{fnv1a, mix};
 pub use strategy::{

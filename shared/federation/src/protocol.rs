@@ -6,7 +6,8 @@ use serde::{Deserialize, Serialize};
 /// 2: volunteer setup, sessions for uploads, rollout requests and results.
 /// 3: the join names the shard the client trains on; the server weighs updates by that shard, not by the claim;
 /// the setup's workload is a [`WorkloadKind`].
-pub const PROTOCOL_VERSION: u16 = 3;
+/// 4: the task names the update's encoding; the payload starts with it (compressed deltas, see [`UpdateEncoding`]).
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// Longest volunteer name, in bytes, the server accepts (on join and in `GET /api/volunteer?name=`).
 pub const MAX_NAME_BYTES: usize = 64;
@@ -153,6 +154,60 @@ pub struct StrategyParams {
     pub proximal_mu: f64,
 }
 
+/// How clients encode their updates, chosen by the server for the run and announced in every task. Every encoding
+/// but `F32` sends the delta from the round's global model rather than the trained tensors.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum UpdateEncoding {
+    /// The trained tensors in f32: exact, 4 bytes a value.
+    #[default]
+    F32,
+    /// The delta rounded to the nearest (ties to even) IEEE half: 2 bytes a value.
+    F16,
+    /// The delta rounded to the nearest (ties to even) bfloat16: 2 bytes a value, f32's range.
+    Bf16,
+    /// The delta in blocks of [`INT8_BLOCK`] values, each an f32 scale (its block's absmax / 127) and one signed
+    /// byte a value: every value within its block's absmax / 254.
+    Int8,
+    /// The `fraction` of each tensor's delta values largest in magnitude, as (index, f32 value) pairs; the client
+    /// adds what it left out to its next update (error feedback).
+    Topk { fraction: f64 },
+}
+
+/// Values per scale of [`UpdateEncoding::Int8`].
+pub const INT8_BLOCK: usize = 256;
+
+impl UpdateEncoding {
+    /// The config and report name ("f32", "f16", "bf16", "int8", "topk").
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::F16 => "f16",
+            Self::Bf16 => "bf16",
+            Self::Int8 => "int8",
+            Self::Topk { .. } => "topk",
+        }
+    }
+
+    /// The encoding called `name`, with `topk_fraction` for top-k (in (0, 1]).
+    pub fn parse(name: &str, topk_fraction: f64) -> Result<Self, String> {
+        match name {
+            "f32" => Ok(Self::F32),
+            "f16" => Ok(Self::F16),
+            "bf16" => Ok(Self::Bf16),
+            "int8" => Ok(Self::Int8),
+            "topk" if topk_fraction > 0.0 && topk_fraction <= 1.0 => Ok(Self::Topk { fraction: topk_fraction }),
+            "topk" => Err(format!("topk-fraction must be in (0, 1], got {topk_fraction}")),
+            other => Err(format!("unknown update encoding `{other}` (expected f32, f16, bf16, int8 or topk)")),
+        }
+    }
+
+    /// How many of a tensor's `numel` values top-k sends: `ceil(fraction * numel)`, at least 1.
+    pub fn topk_count(fraction: f64, numel: usize) -> usize {
+        ((fraction * numel as f64).ceil() as usize).clamp(numel.min(1), numel)
+    }
+}
+
 /// One round of local work for one client.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RoundTask {
@@ -175,6 +230,9 @@ pub struct RoundTask {
     pub eval_request: bool,
     /// Sim rollouts of the task's starting model to report with [`ClientMessage::RolloutResult`].
     pub rollout: Option<RolloutRequest>,
+    /// How to encode the update.
+    #[serde(default)]
+    pub update_encoding: UpdateEncoding,
 }
 
 /// LeRobot's cosine decay with linear warmup, over a client's steps of the whole run: this round's local steps

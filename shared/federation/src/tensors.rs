@@ -68,6 +68,33 @@ impl NamedTensors {
         self.tensors.is_empty()
     }
 
+    /// Tensors in name order, values writable (names and shapes are not).
+    pub fn iter_mut(&mut self) -> impl Iterator<Item = (&str, &mut [f32])> {
+        self.tensors.iter_mut().map(|(name, t)| (name.as_str(), t.values.as_mut_slice()))
+    }
+
+    /// `f(self, other)` value by value, for two sets of the same names and shapes (deltas from a global model and
+    /// back).
+    pub fn zip_map(&self, other: &NamedTensors, f: impl Fn(f32, f32) -> f32) -> Result<NamedTensors, TensorError> {
+        if let Some(name) = other.tensors.keys().find(|n| !self.tensors.contains_key(*n)) {
+            return Err(TensorError::Unexpected(name.clone()));
+        }
+        let mut out = NamedTensors::new();
+        for (name, t) in &self.tensors {
+            let o = other.tensors.get(name).ok_or_else(|| TensorError::Missing(name.clone()))?;
+            if o.shape != t.shape {
+                return Err(TensorError::ShapeMismatch {
+                    name: name.clone(),
+                    expected: t.shape.clone(),
+                    got: o.shape.clone(),
+                });
+            }
+            let values = t.values.iter().zip(&o.values).map(|(&a, &b)| f(a, b)).collect();
+            out.tensors.insert(name.clone(), Tensor { shape: t.shape.clone(), values });
+        }
+        Ok(out)
+    }
+
     /// Number of f32 values over all tensors.
     pub fn num_values(&self) -> usize {
         self.tensors.values().map(|t| t.values.len()).sum()
@@ -150,6 +177,13 @@ impl NamedTensors {
             out.insert(name, view.shape().to_vec(), values)?;
         }
         Ok(out)
+    }
+}
+
+impl FromIterator<(String, Vec<usize>)> for TensorSpec {
+    /// A spec of these names and shapes (without allocating their values).
+    fn from_iter<I: IntoIterator<Item = (String, Vec<usize>)>>(iter: I) -> Self {
+        Self { shapes: iter.into_iter().collect() }
     }
 }
 

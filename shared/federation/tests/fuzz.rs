@@ -4,9 +4,12 @@
 //! a value, never a panic, and a payload is never accepted past the limits, whatever a header claims.
 //! `FEDVLA_FUZZ_CASES` sets the number of cases per target (20,000 by default).
 
-use fedvla_federation::codec::{FrameHeader, Reassembler, UpdateLimits, decode_payload, encode_update};
+use fedvla_federation::codec::{
+    FrameHeader, Reassembler, UpdateLimits, UpdateValues, decode_payload, encode_delta_payload, encode_payload,
+    encode_update,
+};
 use fedvla_federation::protocol::RolloutEpisode;
-use fedvla_federation::{Capabilities, ClientMessage, NamedTensors, ServerMessage};
+use fedvla_federation::{Capabilities, ClientMessage, NamedTensors, ServerMessage, TensorSpec, UpdateEncoding};
 
 /// SplitMix64: a seeded stream of cases, the same on every run.
 struct Cases(u64);
@@ -64,6 +67,17 @@ fn cases() -> usize {
     std::env::var("FEDVLA_FUZZ_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(20_000)
 }
 
+/// Decodes `payload` as `encoding`; whatever is accepted has the spec's names and shapes.
+fn check_decode(payload: &[u8], spec: &TensorSpec, encoding: UpdateEncoding) -> bool {
+    match decode_payload(payload, spec, encoding) {
+        Ok(UpdateValues::Model(t) | UpdateValues::Delta(t)) => {
+            assert_eq!(&t.spec(), spec, "a decoded update has the spec's names and shapes");
+            true
+        }
+        Err(_) => false,
+    }
+}
+
 fn tensors() -> NamedTensors {
     let mut t = NamedTensors::new();
     t.insert("model.expert.w", vec![4, 33], (0..132).map(|i| i as f32 * 0.5 - 3.0).collect()).unwrap();
@@ -75,7 +89,7 @@ fn tensors() -> NamedTensors {
 fn update_frames_and_payloads_never_panic_nor_exceed_limits() {
     let valid = tensors();
     let spec = valid.spec();
-    let limits = UpdateLimits::for_spec(&spec, 96, 64);
+    let limits = UpdateLimits::for_spec(&spec, UpdateEncoding::F32, 96, 64);
     let frames = encode_update(&valid, 3, 96);
     assert!(frames.len() > 3, "the valid update spans several frames");
     let mut rng = Cases(1);
@@ -103,8 +117,7 @@ fn update_frames_and_payloads_never_panic_nor_exceed_limits() {
         }
         let Ok(payload) = update.finish() else { continue };
         assert!(payload.len() as u64 <= limits.max_payload_bytes, "case {case}: payload past the limit");
-        if let Ok(decoded) = decode_payload(&payload, &spec) {
-            assert_eq!(decoded.spec(), spec, "case {case}: a decoded update has the spec's names and shapes");
+        if check_decode(&payload, &spec, UpdateEncoding::F32) {
             accepted += 1;
         }
     }
@@ -118,8 +131,24 @@ fn update_frames_and_payloads_never_panic_nor_exceed_limits() {
     };
     for _ in 0..cases() {
         let input = if rng.below(2) == 0 { rng.mutate(&payload) } else { rng.bytes(700) };
-        if let Ok(decoded) = decode_payload(&input, &spec) {
-            assert_eq!(decoded.spec(), spec);
+        check_decode(&input, &spec, UpdateEncoding::F32);
+    }
+}
+
+#[test]
+fn compressed_payloads_never_panic() {
+    let valid = tensors();
+    let spec = valid.spec();
+    let mut rng = Cases(2);
+    let encodings =
+        [UpdateEncoding::F16, UpdateEncoding::Bf16, UpdateEncoding::Int8, UpdateEncoding::Topk { fraction: 0.1 }];
+    for encoding in encodings {
+        let payload = encode_delta_payload(&mut valid.clone(), encoding);
+        assert!(check_decode(&payload, &spec, encoding), "{encoding:?}: the valid payload decodes");
+        assert!(!check_decode(&encode_payload(&valid), &spec, encoding), "{encoding:?} refuses an f32 payload");
+        for _ in 0..cases() / 4 {
+            let input = if rng.below(4) > 0 { rng.mutate(&payload) } else { rng.bytes(700) };
+            check_decode(&input, &spec, encoding);
         }
     }
 }

@@ -20,7 +20,10 @@ const CLIENT_ROLLOUT_SEEDS_PER_SHARD: u64 = 1_000;
 #[derive(Default)]
 pub(super) struct Participant {
     name: String,
-    update: Option<UpdateReceived>,
+    /// The accepted update (its values moved into `model`).
+    update: Option<AcceptedUpdate>,
+    /// The client's trained tensors, until the round takes them.
+    model: Option<NamedTensors>,
     /// What the update weighs: the client's shard's training examples (1 each where no shard is known).
     examples: u64,
     /// Why the update was left out of the aggregate, when it was.
@@ -30,6 +33,14 @@ pub(super) struct Participant {
     rollout: Option<RolloutResults>,
     refused: Vec<ErrorCode>,
     done: bool,
+}
+
+/// What the round keeps of an accepted update besides its tensors.
+struct AcceptedUpdate {
+    claimed_examples: u64,
+    train_loss: f64,
+    /// Bytes of the update's binary frames, headers included.
+    bytes: u64,
 }
 
 pub(super) struct RoundState {
@@ -47,7 +58,7 @@ impl RoundState {
             .participants
             .iter_mut()
             .filter_map(|(id, p)| {
-                let tensors = std::mem::take(&mut p.update.as_mut()?.tensors);
+                let tensors = p.model.take()?;
                 Some((p.name.as_str(), *id, tensors, p.examples))
             })
             .collect();
@@ -116,6 +127,7 @@ impl Running {
                     first_seed: CLIENT_ROLLOUT_SEED + block * CLIENT_ROLLOUT_SEEDS_PER_SHARD,
                     max_frames: cfg.rollout_max_frames,
                 }),
+                update_encoding: cfg.encoding(),
             };
             // Clients evaluate the model they start from (held-out loss, then sim rollouts) before they train.
             let first_step = if task.eval_request || task.rollout.is_some() {
@@ -182,17 +194,33 @@ impl Running {
             }
             Event::Update { client_id, update } => match participant(client_id) {
                 Some(p) if Some(update.round) == current && p.update.is_none() => {
+                    let UpdateReceived { round: _, values, claimed_examples, train_loss, bytes } = *update;
+                    let model = match values.into_model(&self.c.global) {
+                        Ok(model) => model,
+                        Err(e) => {
+                            let code = e.code();
+                            let message = format!("the update added to the round's global model: {e}");
+                            tracing::warn!(client_id, %message, "refused update");
+                            self.count(code);
+                            p.refused.push(code);
+                            if let Some(c) = self.clients.get(&client_id) {
+                                c.outbox.send(ServerMessage::Error { code, message }).ok();
+                            }
+                            return;
+                        }
+                    };
                     let known = self.clients.get(&client_id).and_then(|c| c.shard);
-                    if known.is_some_and(|s| s.train_examples != update.claimed_examples) {
+                    if known.is_some_and(|s| s.train_examples != claimed_examples) {
                         tracing::info!(
                             client_id,
-                            claimed = update.claimed_examples,
+                            claimed = claimed_examples,
                             weight = p.examples,
                             "update claims another example count than its shard holds: weighed by the shard"
                         );
                         self.c.status_tx.send_modify(|s| s.corrected_claims += 1);
                     }
-                    p.update = Some(*update);
+                    p.update = Some(AcceptedUpdate { claimed_examples, train_loss, bytes });
+                    p.model = Some(model);
                 }
                 _ => {
                     let message =

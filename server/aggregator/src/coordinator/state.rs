@@ -8,6 +8,7 @@ use std::sync::{Arc, Mutex};
 use bytes::Bytes;
 use fedvla_federation::{
     BoxError, Capabilities, ErrorCode, Evaluator, NamedTensors, RolloutEpisode, RoundMetrics, ServerMessage, Strategy,
+    UpdateValues,
 };
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -65,11 +66,12 @@ pub enum Event {
     },
 }
 
-/// A complete, validated update.
+/// A complete, validated update: the trained tensors, or their delta from the round's global model (which the
+/// coordinator, holding that model, adds back).
 #[derive(Debug)]
 pub struct UpdateReceived {
     pub round: u64,
-    pub tensors: NamedTensors,
+    pub values: UpdateValues,
     /// What the update header said; the update weighs what the client's shard holds.
     pub claimed_examples: u64,
     pub train_loss: f64,

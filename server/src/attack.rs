@@ -1,13 +1,17 @@
 //! Simulated attackers, for `simulate` and the robust rules' tests: a volunteer that trains honestly and then
 //! sends a corrupted update, `global + strength * (update - global)` (`scale`: a boosted update, as a model
 //! replacement attack sends) or `global - strength * (update - global)` (`sign-flip`: the honest step reversed
-//! and amplified). `attackers = K` makes clients 0..K such volunteers.
+//! and amplified) or `global + strength * N(0, 1)` (`noise`: no training signal at all, seeded by the task).
+//! `attackers = K` makes clients 0..K such volunteers.
 
 use fedvla_aggregator::config::AttackKind;
 use fedvla_federation::protocol::RolloutRequest;
 use fedvla_federation::{
     BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutOutput, RoundTask, TrainOutput,
 };
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::StandardNormal;
 
 /// How an attacker corrupts its updates.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -17,11 +21,21 @@ pub struct Attack {
 }
 
 impl Attack {
-    /// `update` as this attack sends it, from the `global` model it started from.
-    pub fn corrupt(&self, global: &NamedTensors, update: &NamedTensors) -> NamedTensors {
+    /// `update` as this attack sends it, from the `global` model it started from; `seed` draws the noise.
+    pub fn corrupt(&self, global: &NamedTensors, update: &NamedTensors, seed: u64) -> NamedTensors {
         let factor = match self.kind {
             AttackKind::Scale => self.strength,
             AttackKind::SignFlip => -self.strength,
+            AttackKind::Noise => {
+                let mut rng = StdRng::seed_from_u64(seed);
+                let mut out = global.clone();
+                for (_, values) in out.iter_mut() {
+                    for v in values {
+                        *v += (self.strength * rng.sample::<f64, _>(StandardNormal)) as f32;
+                    }
+                }
+                return out;
+            }
         };
         let mut out = NamedTensors::new();
         for (name, g) in global.iter() {
@@ -64,7 +78,7 @@ impl<T: LocalTrainer> LocalTrainer for Attacker<T> {
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         let mut out = self.inner.train(task).await?;
         if let Some(global) = &self.global {
-            out.update = self.attack.corrupt(global, &out.update);
+            out.update = self.attack.corrupt(global, &out.update, task.seed);
         }
         Ok(out)
     }

@@ -24,7 +24,9 @@ fn final_loss(overrides: &str) -> f64 {
 
 #[test]
 fn fedavg_breaks_under_one_attacker_and_the_robust_rules_do_not() {
-    for attack in ["attack=scale attack-strength=100", "attack=sign-flip attack-strength=10"] {
+    for attack in
+        ["attack=scale attack-strength=100", "attack=sign-flip attack-strength=10", "attack=noise attack-strength=10"]
+    {
         let clean = final_loss("strategy=fedavg");
         let broken = final_loss(&format!("strategy=fedavg attackers=1 {attack}"));
         println!("fedavg, {attack}: held-out loss {clean:.5} without the attacker, {broken:.5} with");

@@ -76,6 +76,8 @@ pub enum AttackKind {
     Scale,
     /// `global - strength * (update - global)`.
     SignFlip,
+    /// `global + strength * N(0, 1)` in every value, the honest update thrown away.
+    Noise,
 }
 
 /// The dtype of each round's exported `model.safetensors`.

@@ -49,6 +49,8 @@ pub async fn http_request(
 pub struct NativeTransport {
     ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
     authority: String,
+    /// The run's auth token, presented with every download (a run that has one serves nothing without it).
+    auth_token: Option<String>,
     started: Instant,
 }
 
@@ -70,13 +72,23 @@ impl NativeTransport {
         // Nagle off: an update is a small header message followed at once by frames.
         let (ws, _) =
             tokio_tungstenite::connect_async_with_config(format!("ws://{authority}{}", routes::WS), None, true).await?;
-        Ok(Self { ws, authority, started: Instant::now() })
+        Ok(Self { ws, authority, auth_token: None, started: Instant::now() })
+    }
+
+    /// Presents `auth_token` with every download.
+    pub fn with_auth_token(mut self, auth_token: Option<String>) -> Self {
+        self.auth_token = auth_token;
+        self
     }
 }
 
 impl Fetch for NativeTransport {
     async fn get(&self, path: &str, what: &str, _cache_key: Option<&str>) -> Result<Vec<u8>, BoxError> {
-        let bytes = http_request(&self.authority, hyper::Request::get(path), Bytes::new()).await?;
+        let mut request = hyper::Request::get(path);
+        if let Some(token) = &self.auth_token {
+            request = request.header(hyper::header::AUTHORIZATION, format!("Bearer {token}"));
+        }
+        let bytes = http_request(&self.authority, request, Bytes::new()).await?;
         tracing::debug!(what, bytes = bytes.len(), "downloaded");
         Ok(bytes)
     }
@@ -132,7 +144,7 @@ pub async fn volunteer(
     attack: Option<Attack>,
     on_event: impl FnMut(ClientEvent),
 ) -> Result<ClientSummary, BoxError> {
-    let mut transport = NativeTransport::connect(server).await?;
+    let mut transport = NativeTransport::connect(server).await?.with_auth_token(auth_token.clone());
     let setup = fetch_setup(&transport, name, shard).await?;
     tracing::info!(workload = ?setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
     let options = ClientOptions { name: name.to_owned(), auth_token, shard: Some(setup.shard_index) };

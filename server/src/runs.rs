@@ -94,6 +94,7 @@ fn serve_clients(
     let rounds = config.num_server_rounds;
     let attack = Attack { kind: config.attack, strength: config.attack_strength };
     let attackers = config.attackers;
+    let auth_token = (!config.auth_token.is_empty()).then(|| config.auth_token.clone());
     let parts = server_parts(workload, config, run_dir).map_err(boxed)?;
     runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
@@ -119,7 +120,7 @@ fn serve_clients(
             .map(|shard| {
                 let attack = (shard < attackers).then_some(attack);
                 let prefix = if attack.is_some() { format!("attacker {shard}") } else { format!("client {shard}") };
-                Ok(spawn_client(url.clone(), shard, attack, bars.bar(rounds, prefix)?))
+                Ok(spawn_client(url.clone(), shard, auth_token.clone(), attack, bars.bar(rounds, prefix)?))
             })
             .collect::<anyhow::Result<_>>()?;
         // A simulated federation cannot finish without its clients: the first client to fail
@@ -161,6 +162,7 @@ fn serve_clients(
 fn spawn_client(
     url: String,
     shard: usize,
+    auth_token: Option<String>,
     attack: Option<Attack>,
     bar: ProgressBar,
 ) -> oneshot::Receiver<anyhow::Result<()>> {
@@ -169,7 +171,7 @@ fn spawn_client(
         let client = async move {
             let name = format!("client-{shard}");
             let summary =
-                native_client::volunteer(&url, &name, Some(shard as u32), None, attack, |event| match event {
+                native_client::volunteer(&url, &name, Some(shard as u32), auth_token, attack, |event| match event {
                     ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
                     ClientEvent::Task { round, local_steps } => {
                         bar.set_message(format!("round {round}: training {local_steps} steps"));

@@ -274,3 +274,46 @@ async fn shards_and_client_ids_survive_a_restart() {
     assert!(second_id > first_id, "client ids are never handed out twice: {first_id} then {second_id}");
     handle.kill();
 }
+
+/// A run with an auth token serves its data only to those who present it: every download route answers 401
+/// without it (or with a wrong one) and 200 with it; a whole federation of native volunteers holding the token
+/// runs to its end.
+#[tokio::test]
+async fn downloads_of_a_run_with_an_auth_token_need_it() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=1 auth-token=s3cret");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let routes = ["/api/volunteer?name=eve", "/shard/0", "/shard/0/manifest", "/model/0"];
+    for path in routes {
+        for headers in [&[][..], &[("authorization", "Bearer wrong")][..], &[("authorization", "s3cret")][..]] {
+            let (status, body) = http(&handle, "GET", path, headers, Vec::new()).await;
+            assert_eq!(status, 401, "{path} {headers:?}: {body}");
+        }
+        let (status, body) = http(&handle, "GET", path, &[("authorization", "Bearer s3cret")], Vec::new()).await;
+        // linreg's shards are generated, not files: the server says so, but only to the token's holder.
+        assert!(status == 200 || (path.starts_with("/shard") && status == 404), "{path}: {status} {body}");
+    }
+    let url = format!("ws://{}", handle.addr());
+    let clients: Vec<_> = (0..3)
+        .map(|shard| {
+            let url = url.clone();
+            tokio::spawn(async move {
+                fedvla_server::native_client::volunteer(
+                    &url,
+                    &format!("client-{shard}"),
+                    Some(shard),
+                    Some("s3cret".into()),
+                    None,
+                    |_| {},
+                )
+                .await
+                .map_err(|e| e.to_string())
+            })
+        })
+        .collect();
+    assert_eq!(handle.finish().await.unwrap().completed_rounds, 1);
+    for client in clients {
+        client.await.unwrap().unwrap();
+    }
+}

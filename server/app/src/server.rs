@@ -80,6 +80,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         idle_timeout: Duration::from_millis(config.idle_timeout_ms),
     };
     let sessions = Sessions::default();
+    let auth_token: Option<Arc<str>> = (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str()));
     let volunteers = Arc::new(Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names)?);
     let state = AppState {
         socket: SocketState {
@@ -89,11 +90,12 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             encoding,
             limits,
             keepalive: http_limits.keepalive(),
-            auth_token: (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str())),
+            auth_token: auth_token.clone(),
             volunteers: Arc::clone(&volunteers),
             sessions: sessions.clone(),
         },
         volunteers: VolunteerState {
+            auth_token: auth_token.clone(),
             volunteers,
             sessions: sessions.clone(),
             model: model_rx,

@@ -47,6 +47,9 @@ pub struct SocketState {
 /// The volunteers' HTTP routes': setup, shards, frozen weights, the global model, rollout videos.
 #[derive(Clone)]
 pub struct VolunteerState {
+    /// The run's auth token: when set, every download (setup, shard, frozen weights, model) needs it as
+    /// `Authorization: Bearer <token>`, so only the federation's volunteers see its data.
+    pub auth_token: Option<Arc<str>>,
     pub volunteers: Arc<Volunteers>,
     pub sessions: Sessions,
     pub model: watch::Receiver<Arc<PublishedModel>>,

@@ -2,18 +2,21 @@
 //! shard to train on, the policy configuration, where the frozen weights are), the shard and its manifest, the
 //! frozen weights (named by content hash so browsers cache them forever), the global model, and rollout videos
 //! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked).
+//! A run with an auth token serves its downloads only to requests that present it ([`RunToken`]).
 
 use std::sync::Arc;
 
 use axum::Json;
 use axum::Router;
 use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::extract::{DefaultBodyLimit, FromRef, FromRequestParts, Path, Query, State};
 use axum::http::header::{AUTHORIZATION, CACHE_CONTROL, CONTENT_TYPE};
+use axum::http::request::Parts;
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use fedvla_aggregator::registry::Volunteers;
+use fedvla_aggregator::sessions::same_secret;
 use fedvla_federation::{PROTOCOL_VERSION, VolunteerSetup, routes};
 use serde::Deserialize;
 
@@ -34,6 +37,33 @@ pub fn routes() -> Router<AppState> {
         .route(routes::ROLLOUT_VIDEO, post(post_video).layer(DefaultBodyLimit::max(MAX_VIDEO_BYTES)))
 }
 
+/// The `Bearer` credential of a request, if it has one.
+fn bearer(headers: &HeaderMap) -> Option<&str> {
+    headers.get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "))
+}
+
+/// Proof that a download request may see the run's data: it presents the run's auth token (compared in constant
+/// time), or the run has none (a public run).
+struct RunToken;
+
+impl<S: Send + Sync> FromRequestParts<S> for RunToken
+where
+    VolunteerState: FromRef<S>,
+{
+    type Rejection = ServerError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ServerError> {
+        let Some(expected) = VolunteerState::from_ref(state).auth_token else { return Ok(Self) };
+        match bearer(&parts.headers) {
+            Some(token) if same_secret(token, &expected) => Ok(Self),
+            Some(_) => Err(ServerError::Unauthorized("wrong auth token".into())),
+            None => Err(ServerError::Unauthorized(
+                "this run needs its auth token: `Authorization: Bearer <auth-token>`".into(),
+            )),
+        }
+    }
+}
+
 /// Who asks for a setup.
 #[derive(Deserialize)]
 struct SetupQuery {
@@ -44,6 +74,7 @@ struct SetupQuery {
 
 /// The setup of a volunteer (`?name=` keeps a returning one on its shard).
 async fn get_setup(
+    _: RunToken,
     State(state): State<VolunteerState>,
     Query(query): Query<SetupQuery>,
 ) -> Result<Json<VolunteerSetup>, ServerError> {
@@ -80,7 +111,11 @@ pub async fn persist(volunteers: &Arc<Volunteers>) -> Result<(), ServerError> {
     }
 }
 
-async fn get_frozen(Path(tag): Path<String>, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+async fn get_frozen(
+    _: RunToken,
+    Path(tag): Path<String>,
+    State(state): State<VolunteerState>,
+) -> Result<Response, ServerError> {
     let v = &state.volunteers;
     match (&v.offer().frozen, v.frozen_tag()) {
         (Some(bytes), Some(current)) if current == tag => Ok((
@@ -93,13 +128,18 @@ async fn get_frozen(Path(tag): Path<String>, State(state): State<VolunteerState>
 }
 
 /// The shard file as stored; clients check it against the manifest's size and SHA-256.
-async fn get_shard(Path(index): Path<usize>, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+async fn get_shard(
+    _: RunToken,
+    Path(index): Path<usize>,
+    State(state): State<VolunteerState>,
+) -> Result<Response, ServerError> {
     let path = state.volunteers.shard_file(index)?;
     let bytes = tokio::fs::read(path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
     Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
 }
 
 async fn get_shard_manifest(
+    _: RunToken,
     Path(index): Path<usize>,
     State(state): State<VolunteerState>,
 ) -> Result<Response, ServerError> {
@@ -109,7 +149,11 @@ async fn get_shard_manifest(
 }
 
 /// The global trainable tensors of the current version.
-async fn get_model(Path(version): Path<u64>, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+async fn get_model(
+    _: RunToken,
+    Path(version): Path<u64>,
+    State(state): State<VolunteerState>,
+) -> Result<Response, ServerError> {
     let model = state.model.borrow().clone();
     if model.version != version {
         return Err(ServerError::ModelVersion { requested: version, current: model.version });
@@ -124,10 +168,7 @@ async fn post_video(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Response, ServerError> {
-    let token = headers
-        .get(AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
+    let token = bearer(&headers)
         .ok_or_else(|| ServerError::Unauthorized("no `Authorization: Bearer <session>` header".into()))?;
     let client_id = state
         .sessions

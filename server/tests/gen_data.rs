@@ -181,3 +181,41 @@ fn files(root: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     }
     out
 }
+
+/// `partitioning = "by-layout"` hands the partitioner a recorded dataset's episodes in the order of where the
+/// cube starts around the arm, so each client's contiguous run is one region of the table; a dataset the sim did
+/// not record (no seeds file) is refused, naming the file.
+#[test]
+fn by_layout_orders_episodes_by_where_the_cube_starts() {
+    use fedvla_aggregator::config::RunConfig;
+    use fedvla_sim::task::Layout;
+    use fedvla_workloads::datagen::SEEDS_FILE;
+    use fedvla_workloads::smolvla::episodes_to_partition;
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("so100");
+    let opts = GenDataOptions { episodes: 6, seed: 0, image_size: 32, ..Default::default() };
+    generate_dataset(&out, &opts, |_| {}).expect("generate");
+    let dataset = LeRobotDataset::open(&out).expect("open");
+    let config = RunConfig::default().with_overrides("partitioning=by-layout").unwrap();
+    let episodes = episodes_to_partition(&config, &out, &dataset).expect("ordered");
+    let seeds = recorded_seeds(&out).unwrap().unwrap().seeds;
+    let azimuths: Vec<f32> = episodes
+        .iter()
+        .map(|e| {
+            let cube = Layout::from_seed(seeds[e.episode_index]).cube_position;
+            cube.x.atan2(-cube.y)
+        })
+        .collect();
+    assert_eq!(episodes.len(), 6);
+    assert!(azimuths.windows(2).all(|w| w[0] <= w[1]), "ordered by azimuth: {azimuths:?}");
+    assert!(azimuths[0] < 0.0 && azimuths[5] > 0.0, "cubes on both sides of the arm: {azimuths:?}");
+    let by_episode = RunConfig::default().with_overrides("partitioning=by-episode").unwrap();
+    let indices: Vec<usize> =
+        episodes_to_partition(&by_episode, &out, &dataset).unwrap().iter().map(|e| e.episode_index).collect();
+    assert_eq!(indices, [0, 1, 2, 3, 4, 5], "other partitionings keep index order");
+
+    std::fs::remove_file(out.join(SEEDS_FILE)).unwrap();
+    let err = episodes_to_partition(&config, &out, &dataset).expect_err("no seeds");
+    assert!(format!("{err:#}").contains(SEEDS_FILE), "{err:#}");
+}

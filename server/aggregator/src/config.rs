@@ -66,6 +66,10 @@ pub enum Partitioning {
     Iid,
     /// Each client holds whole episodes, so its data is skewed towards its own states.
     ByEpisode,
+    /// Each client holds the episodes of one region of the workspace (sim datasets: episodes ordered by where
+    /// the cube starts, around the arm, then cut into contiguous runs): a volunteer whose table is always set
+    /// up the same way.
+    ByLayout,
 }
 
 /// How `simulate`'s attackers corrupt their updates (see `fedvla_server::attack`).

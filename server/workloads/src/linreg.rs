@@ -129,7 +129,7 @@ impl LinRegTrainer {
         let world = World::new();
         let shift = match partitioning {
             Partitioning::Iid => 0.0,
-            Partitioning::ByEpisode => 0.5 * (shard as f32 % 3.0 - 1.0),
+            Partitioning::ByEpisode | Partitioning::ByLayout => 0.5 * (shard as f32 % 3.0 - 1.0),
         };
         let seed = WORLD_SEED ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
         let (weight, bias) = head(&initial_model(0)).expect("initial model is valid");

@@ -9,8 +9,8 @@ use std::sync::Arc;
 use anyhow::Context;
 use burn::tensor::Device;
 use fedvla_data::{
-    ClientShard, ClientSplit, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec, build_shard,
-    episode_tasks, partition,
+    ClientShard, ClientSplit, EpisodeTask, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec,
+    build_shard, episode_tasks, partition,
 };
 use fedvla_federation::{BoxError, Evaluator, NamedTensors};
 use fedvla_learner::rollout::SimPolicy;
@@ -25,13 +25,14 @@ use fedvla_policy::{
     FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap, WordTokenizer,
 };
 use fedvla_sim::TASK;
+use fedvla_sim::task::Layout;
 
 use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
 use fedvla_aggregator::records::SimFigures;
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
 use fedvla_aggregator::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
 
-use crate::datagen::{GenDataOptions, GenProgress, generate_dataset};
+use crate::datagen::{GenDataOptions, GenProgress, SEEDS_FILE, generate_dataset, recorded_seeds};
 use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim};
 use crate::workload::Workload;
 
@@ -188,7 +189,38 @@ fn partition_strategy(p: Partitioning) -> PartitionStrategy {
     match p {
         Partitioning::Iid => PartitionStrategy::EpisodeModulo,
         Partitioning::ByEpisode => PartitionStrategy::Contiguous,
+        Partitioning::ByLayout => PartitionStrategy::ContiguousInGivenOrder,
     }
+}
+
+/// The dataset's episodes as the partitioner gets them: in index order, or for `by-layout` in the order of where
+/// the sim put each episode's cube (its azimuth around the arm's base, from the recorded seed).
+pub fn episodes_to_partition(
+    config: &RunConfig,
+    root: &Path,
+    dataset: &LeRobotDataset,
+) -> anyhow::Result<Vec<EpisodeTask>> {
+    let mut episodes = episode_tasks(dataset);
+    if config.partitioning == Partitioning::ByLayout {
+        let recorded = recorded_seeds(root)?.with_context(|| {
+            format!(
+                "partitioning = \"by-layout\" needs a dataset the sim recorded ({} in {})",
+                SEEDS_FILE,
+                root.display()
+            )
+        })?;
+        let azimuth = |e: &EpisodeTask| -> anyhow::Result<f32> {
+            let seed = recorded.seeds.get(e.episode_index).with_context(|| {
+                format!("{} lists no seed for episode {} of {}", SEEDS_FILE, e.episode_index, root.display())
+            })?;
+            let cube = Layout::from_seed(*seed).cube_position;
+            Ok(cube.x.atan2(-cube.y))
+        };
+        let mut keyed = episodes.iter().map(|e| Ok((azimuth(e)?, *e))).collect::<anyhow::Result<Vec<_>>>()?;
+        keyed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.episode_index.cmp(&b.1.episode_index)));
+        episodes = keyed.into_iter().map(|(_, e)| e).collect();
+    }
+    Ok(episodes)
 }
 
 /// `model-size` with the run configuration's changes to it (what is trained, image and patch size, action chunk).
@@ -324,7 +356,7 @@ impl SmolVlaWorkload {
             server_held_out_fraction: SERVER_HELD_OUT,
             seed: config.seed,
         };
-        let parts = partition(&episode_tasks(&dataset), &partition_config)?;
+        let parts = partition(&episodes_to_partition(config, &root, &dataset)?, &partition_config)?;
         std::fs::create_dir_all(shard_dir).with_context(|| format!("creating {}", shard_dir.display()))?;
         let (w, h) = cfg.resize_imgs_with_padding;
         let spec = ShardSpec {

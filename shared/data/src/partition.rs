@@ -24,6 +24,9 @@ pub enum PartitionStrategy {
     EpisodeModulo,
     /// Episodes in index order, cut into N contiguous runs of (nearly) equal size.
     Contiguous,
+    /// Episodes in the order the caller lists them (e.g. by where the sim put the cube), cut into N contiguous runs
+    /// of (nearly) equal size: each client holds one region of that order.
+    ContiguousInGivenOrder,
     /// Every task goes whole to one client; tasks are dealt round-robin in a seeded order.
     ByTask,
     /// Per task, client shares drawn from Dirichlet(alpha): small alpha = very skewed clients.
@@ -138,6 +141,14 @@ pub fn partition(episodes: &[EpisodeTask], config: &PartitionConfig) -> Result<P
             let indices: Vec<usize> = remaining.iter().map(|e| e.episode_index).collect();
             split_by_counts(&indices, &even_counts(indices.len(), n))
         }
+        PartitionStrategy::ContiguousInGivenOrder => {
+            let kept: Vec<usize> = episodes
+                .iter()
+                .map(|e| e.episode_index)
+                .filter(|i| server_held_out.binary_search(i).is_err())
+                .collect();
+            split_by_counts(&kept, &even_counts(kept.len(), n))
+        }
         PartitionStrategy::ByTask => {
             let mut tasks = distinct_tasks(&remaining);
             tasks.shuffle(&mut rng);
@@ -235,6 +246,7 @@ mod tests {
         prop_oneof![
             Just(PartitionStrategy::EpisodeModulo),
             Just(PartitionStrategy::Contiguous),
+            Just(PartitionStrategy::ContiguousInGivenOrder),
             Just(PartitionStrategy::ByTask),
             (0.05f64..5.0).prop_map(|alpha| PartitionStrategy::Dirichlet { alpha }),
         ]
@@ -310,6 +322,16 @@ mod tests {
                     let (min, max) = (sizes.iter().min().copied().unwrap_or(0), sizes.iter().max().copied().unwrap_or(0));
                     prop_assert!(max - min <= 1, "contiguous sizes {:?}", sizes);
                     let ranges: Vec<(usize, usize)> = p.clients.iter().filter_map(|c| Some((c.all().min()?, c.all().max()?))).collect();
+                    prop_assert!(ranges.windows(2).all(|w| w[0].1 < w[1].0), "runs overlap: {:?}", ranges);
+                }
+                PartitionStrategy::ContiguousInGivenOrder => {
+                    // In the caller's order (here: descending index), each client holds one run.
+                    let position = |ep: usize| episodes.iter().position(|e| e.episode_index == ep).unwrap();
+                    let ranges: Vec<(usize, usize)> = p
+                        .clients
+                        .iter()
+                        .filter_map(|c| Some((c.all().map(position).min()?, c.all().map(position).max()?)))
+                        .collect();
                     prop_assert!(ranges.windows(2).all(|w| w[0].1 < w[1].0), "runs overlap: {:?}", ranges);
                 }
                 PartitionStrategy::Dirichlet { .. } => {}

@@ -9,6 +9,7 @@ pub mod error;
 pub mod evaluate;
 pub mod protocol;
 mod quantize;
+mod reader;
 pub mod seed;
 pub mod strategy;
 pub mod tensors;

@@ -11,9 +11,9 @@
 
 use half::{bf16, f16};
 
-use crate::codec::Reader;
 use crate::error::CodecError;
 use crate::protocol::{INT8_BLOCK, UpdateEncoding};
+use crate::reader::Reader;
 
 /// Bytes `values` of `numel` take under `encoding` (top-k at its full count).
 pub(crate) fn encoded_len(encoding: UpdateEncoding, numel: usize) -> usize {

@@ -170,8 +170,10 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
     // Only the trainable tensors cross the wire: each upload is their payload plus frame headers,
     // far below the frozen part.
     let spec = first.initial.spec();
-    let payload: usize =
-        4 + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
+    // The encoding byte, the tensor count, then per tensor its name, rank, dimensions and f32 values.
+    let payload: usize = 1
+        + 4
+        + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
     let frames = payload.div_ceil(first.cfg.max_frame_bytes - HEADER_LEN);
     let lines = metrics(&first.dir);
     assert_eq!(lines.iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 1, 2]);

@@ -94,7 +94,7 @@ fn serve_clients(
     let rounds = config.num_server_rounds;
     let attack = Attack { kind: config.attack, strength: config.attack_strength };
     let attackers = config.attackers;
-    let auth_token = (!config.auth_token.is_empty()).then(|| config.auth_token.clone());
+    let auth_token = config.auth_token().map(str::to_owned);
     let parts = server_parts(workload, config, run_dir).map_err(boxed)?;
     runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;

@@ -226,12 +226,17 @@ impl RunConfig {
         })
     }
 
-    /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
     /// How clients encode their updates (`update-encoding`, `topk-fraction`).
     pub fn encoding(&self) -> UpdateEncoding {
         UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).expect("validated with the config")
     }
 
+    /// The token clients must present (`auth-token`), or `None` for a public run.
+    pub fn auth_token(&self) -> Option<&str> {
+        Some(self.auth_token.as_str()).filter(|t| !t.is_empty())
+    }
+
+    /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
     pub fn sampled_clients(&self, connected: usize) -> usize {
         ((self.fraction_fit * connected as f64).ceil() as usize).max(self.min_fit).min(connected)
     }

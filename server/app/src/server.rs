@@ -80,7 +80,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         idle_timeout: Duration::from_millis(config.idle_timeout_ms),
     };
     let sessions = Sessions::default();
-    let auth_token: Option<Arc<str>> = (!config.auth_token.is_empty()).then(|| Arc::from(config.auth_token.as_str()));
+    let auth_token: Option<Arc<str>> = config.auth_token().map(Arc::from);
     let volunteers = Arc::new(Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names)?);
     let state = AppState {
         socket: SocketState {

@@ -169,6 +169,15 @@ impl Running {
         Ok(state)
     }
 
+    /// Counts an update the coordinator refused and tells its client why.
+    fn refuse_update(&mut self, client_id: u64, code: ErrorCode, message: String) {
+        tracing::warn!(client_id, %message, "refused update");
+        self.count(code);
+        if let Some(c) = self.clients.get(&client_id) {
+            c.outbox.send(ServerMessage::Error { code, message }).ok();
+        }
+    }
+
     pub(super) fn handle(&mut self, event: Event, round: Option<&mut RoundState>) {
         let current = round.as_deref().map(|r| r.round);
         let rollouts_requested = round.as_deref().is_some_and(|r| r.rollouts_requested);
@@ -198,14 +207,12 @@ impl Running {
                     let model = match values.into_model(&self.c.global) {
                         Ok(model) => model,
                         Err(e) => {
-                            let code = e.code();
-                            let message = format!("the update added to the round's global model: {e}");
-                            tracing::warn!(client_id, %message, "refused update");
-                            self.count(code);
-                            p.refused.push(code);
-                            if let Some(c) = self.clients.get(&client_id) {
-                                c.outbox.send(ServerMessage::Error { code, message }).ok();
-                            }
+                            p.refused.push(e.code());
+                            self.refuse_update(
+                                client_id,
+                                e.code(),
+                                format!("the update added to the round's global model: {e}"),
+                            );
                             return;
                         }
                     };
@@ -225,11 +232,7 @@ impl Running {
                 _ => {
                     let message =
                         format!("update for round {} is not expected (current round {current:?})", update.round);
-                    tracing::warn!(client_id, %message, "refused update");
-                    self.count(ErrorCode::StaleRound);
-                    if let Some(c) = self.clients.get(&client_id) {
-                        c.outbox.send(ServerMessage::Error { code: ErrorCode::StaleRound, message }).ok();
-                    }
+                    self.refuse_update(client_id, ErrorCode::StaleRound, message);
                 }
             },
             Event::Uploading { client_id } => {

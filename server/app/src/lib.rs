@@ -3,6 +3,7 @@
 //! operator console ([`console`]) and, for every other path, the pages under `www-dir` ([`static_files`]);
 //! the listener that serves it under bounds ([`http`]); and starting a whole server ([`server`]).
 
+pub mod auth;
 pub mod connection;
 pub mod console;
 pub mod error;

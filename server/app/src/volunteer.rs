@@ -10,7 +10,7 @@ use axum::Json;
 use axum::Router;
 use axum::body::Bytes;
 use axum::extract::{DefaultBodyLimit, FromRef, FromRequestParts, Path, Query, State};
-use axum::http::header::{AUTHORIZATION, CACHE_CONTROL, CONTENT_TYPE};
+use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
@@ -20,6 +20,7 @@ use fedvla_aggregator::sessions::same_secret;
 use fedvla_federation::{PROTOCOL_VERSION, VolunteerSetup, routes};
 use serde::Deserialize;
 
+use crate::auth::bearer;
 use crate::console::ConsoleEvent;
 use crate::error::ServerError;
 use crate::state::{AppState, VolunteerState};
@@ -35,11 +36,6 @@ pub fn routes() -> Router<AppState> {
         .route(routes::SHARD_MANIFEST, get(get_shard_manifest))
         .route(routes::MODEL, get(get_model))
         .route(routes::ROLLOUT_VIDEO, post(post_video).layer(DefaultBodyLimit::max(MAX_VIDEO_BYTES)))
-}
-
-/// The `Bearer` credential of a request, if it has one.
-fn bearer(headers: &HeaderMap) -> Option<&str> {
-    headers.get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "))
 }
 
 /// Proof that a download request may see the run's data: it presents the run's auth token (compared in constant

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 use axum::body::{Body, Bytes};
 use axum::extract::{Path as UrlPath, Query, Request, State};
-use axum::http::header::{AUTHORIZATION, CONTENT_DISPOSITION, CONTENT_TYPE};
+use axum::http::header::{CONTENT_DISPOSITION, CONTENT_TYPE};
 use axum::http::{HeaderMap, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event as SseEvent, KeepAlive, Sse};
@@ -27,6 +27,7 @@ use tokio_util::io::{ReaderStream, SyncIoBridge};
 use super::events::ConsoleEvent;
 use super::gallery::{RoundGallery, checkpoint_rounds, gallery};
 use super::hub::{ConsoleHub, LiveSnapshot};
+use crate::auth::bearer;
 use crate::state::{AppState, ConsoleState};
 use crate::static_files::{FileError, file_response, relative_path};
 
@@ -87,9 +88,7 @@ async fn require_operator(
     request: Request,
     next: Next,
 ) -> Response {
-    let bearer =
-        request.headers().get(AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
-    match bearer.or(query.token.as_deref()) {
+    match bearer(request.headers()).or(query.token.as_deref()) {
         None => ConsoleError::MissingToken.into_response(),
         Some(token) if console.is_operator(token) => next.run(request).await,
         Some(_) => ConsoleError::WrongToken.into_response(),

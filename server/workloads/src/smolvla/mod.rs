@@ -1,6 +1,10 @@
 //! SmolVLA on SO-100 data as the federation's workload: the dataset (the embedded default is
 //! recorded by the sim's scripted expert on first use), its partition into client shards and the
-//! server's held-out shard, the initial checkpoint, and a LeRobot policy directory per round.
+//! server's held-out shard, the initial checkpoint; what each round's global model is exported as ([`export`]);
+//! the run's tokenizer ([`tokenizer`]).
+
+mod export;
+mod tokenizer;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -13,27 +17,23 @@ use fedvla_data::{
     build_shard, episode_tasks, partition,
 };
 use fedvla_federation::{BoxError, Evaluator, NamedTensors};
-use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::rollout::TaskTokens;
-use fedvla_learner::tensors::{to_named, to_weights};
+use fedvla_learner::tensors::to_named;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
-use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes_as};
-use fedvla_policy::{
-    FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap, WordTokenizer,
-};
+use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
 use fedvla_sim::TASK;
 use fedvla_sim::task::Layout;
 
 use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
-use fedvla_aggregator::records::SimFigures;
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
-use fedvla_aggregator::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
+use fedvla_aggregator::run_dir::ModelExporter;
 
+use self::export::{LeRobotExport, SimRollouts};
+use self::tokenizer::RunTokenizer;
 use crate::datagen::{GenDataOptions, GenProgress, SEEDS_FILE, generate_dataset, recorded_seeds};
-use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim};
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -58,72 +58,6 @@ pub struct SmolVlaWorkload {
     /// Every client's training episodes in one shard: what the centralized baseline trains on.
     pooled_shard: PathBuf,
     seed: u64,
-}
-
-/// The run's one tokenizer, chosen once: shards, held-out evaluation, every rollout and the export use it.
-#[derive(Clone)]
-enum RunTokenizer {
-    /// Random initialisation: the word-level tokenizer of the dataset's task strings, exported as a generated `vlm/`.
-    Generated(WordTokenizer),
-    /// `init-policy`: the checkpoint's own (its ids are what its token embedding was trained on), and the
-    /// checkpoint's backbone folder, copied into every export.
-    Checkpoint { tokenizer: Tokenizer, backbone: PathBuf },
-}
-
-impl RunTokenizer {
-    /// The checkpoint's tokenizer when `init` is given, else the word-level one of `tasks`.
-    fn choose(init: Option<(&Path, &PolicyDir)>, tasks: &[String]) -> anyhow::Result<Self> {
-        let Some((path, policy)) = init else {
-            return Ok(Self::Generated(WordTokenizer::from_texts(tasks.iter().map(String::as_str))));
-        };
-        let no_tokenizer = || {
-            format!(
-                "init-policy {}: no tokenizer.json in its backbone folder (vlm/, or the folder config.json's \
-                 vlm_model_name {:?} names); a run from a checkpoint tokenizes with the checkpoint's own tokenizer",
-                path.display(),
-                policy.cfg.vlm_model_name
-            )
-        };
-        let tokenizer = policy.tokenizer()?.with_context(no_tokenizer)?;
-        let backbone = policy.vlm_dir.clone().with_context(no_tokenizer)?;
-        Ok(Self::Checkpoint { tokenizer, backbone })
-    }
-
-    fn tokenizer(&self) -> Tokenizer {
-        match self {
-            Self::Generated(word) => Tokenizer::Word(word.clone()),
-            Self::Checkpoint { tokenizer, .. } => tokenizer.clone(),
-        }
-    }
-
-    fn vocab_size(&self) -> usize {
-        match self {
-            Self::Generated(word) => word.vocab_size(),
-            Self::Checkpoint { tokenizer, .. } => tokenizer.vocab_size(),
-        }
-    }
-
-    fn encode(&self, task: &str, max_length: usize, pad_to_max: bool) -> anyhow::Result<TaskTokens> {
-        Ok(match self {
-            Self::Generated(word) => word.encode_batch(&[task], max_length, pad_to_max),
-            Self::Checkpoint { tokenizer, .. } => tokenizer.encode_batch(&[task], max_length, pad_to_max)?,
-        })
-    }
-
-    /// Which tokenizer this is, for a person reading the run's start or an error.
-    fn describe(&self) -> String {
-        match self {
-            Self::Generated(word) => format!("word-level, of the dataset's task strings ({} ids)", word.vocab_size()),
-            Self::Checkpoint { backbone, .. } => format!("the checkpoint's, {}/tokenizer.json", backbone.display()),
-        }
-    }
-
-    fn backbone(&self) -> Backbone<'_> {
-        match self {
-            Self::Generated(word) => Backbone::Generated(word),
-            Self::Checkpoint { backbone, .. } => Backbone::CopyFrom(backbone),
-        }
-    }
 }
 
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
@@ -456,7 +390,7 @@ impl SmolVlaWorkload {
     /// pooled), from the run's initial weights: the centralized baseline of a federation.
     pub fn centralized_trainer(&self) -> Result<SmolVlaTrainer, BoxError> {
         let examples = self.examples(&self.pooled_shard)?;
-        Ok(SmolVlaTrainer::new(&self.cfg, &self.weights, examples, self.seed, &Device::flex().autodiff(), "cpu-flex")?)
+        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, self.seed, &Device::flex().autodiff(), "cpu-flex")
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -485,80 +419,6 @@ impl SmolVlaWorkload {
         let trainable: std::collections::BTreeSet<String> =
             self.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
         self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect()
-    }
-}
-
-/// Rolls each round's global model out in the sim (`global_model/round_N/rollouts/`: results.json
-/// with the success rate and one MP4 per episode), on the same seeds every round, for as many
-/// episodes as `rollout-episodes` says at that round (the operator may change it; 0: none).
-struct SimRollouts {
-    cfg: SmolVlaConfig,
-    frozen: Arc<WeightMap>,
-    stats: NormStats,
-    tokenizer: Tokenizer,
-}
-
-impl ModelExporter for SimRollouts {
-    fn export(
-        &self,
-        round: u64,
-        global: &NamedTensors,
-        config: &RunConfig,
-        dir: &Path,
-    ) -> Result<Option<SimFigures>, BoxError> {
-        // Rolled out where the round is evaluated: every eval-every rounds and the last.
-        let evaluated = round.is_multiple_of(config.eval_every) || round == config.num_server_rounds;
-        if config.rollout_episodes == 0 || !evaluated {
-            return Ok(None);
-        }
-        let mut weights = (*self.frozen).clone();
-        weights.extend(to_weights(global));
-        let policy = SimPolicy::new(&self.cfg, &weights, self.stats.clone(), &self.tokenizer, &Device::flex())?;
-        let source = format!("global model of round {round}");
-        let options = SimEvalOptions {
-            episodes: config.rollout_episodes,
-            max_frames: config.rollout_max_frames as usize,
-            video_size: Some(ROLLOUT_VIDEO_SIZE),
-            ..SimEvalOptions::default()
-        };
-        let summary = evaluate_in_sim(
-            Agent::Policy { policy: &policy, source: &source },
-            &options,
-            &dir.join(ROLLOUTS_DIR),
-            |_, _| {},
-        )
-        .map_err(|e| format!("{e:#}"))?;
-        tracing::info!(
-            round,
-            success_rate = ?summary.success_rate,
-            mean_length = ?summary.mean_length,
-            "global model rolled out in the sim"
-        );
-        Ok(summary.figures())
-    }
-}
-
-/// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
-struct LeRobotExport {
-    cfg: SmolVlaConfig,
-    frozen: Arc<WeightMap>,
-    stats: NormStats,
-    tokenizer: RunTokenizer,
-    dtype: StoredDtype,
-}
-
-impl ModelExporter for LeRobotExport {
-    fn export(
-        &self,
-        _round: u64,
-        global: &NamedTensors,
-        _config: &RunConfig,
-        dir: &Path,
-    ) -> Result<Option<SimFigures>, BoxError> {
-        let mut weights = (*self.frozen).clone();
-        weights.extend(to_weights(global));
-        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, self.tokenizer.backbone(), self.dtype)?;
-        Ok(None)
     }
 }
 

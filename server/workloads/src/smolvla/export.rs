@@ -1,0 +1,93 @@
+//! What the server writes of each round's global model: a LeRobot policy directory, and the policy rolled out
+//! and filmed in the sim.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use burn::tensor::Device;
+use fedvla_federation::{BoxError, NamedTensors};
+use fedvla_learner::rollout::SimPolicy;
+use fedvla_learner::tensors::to_weights;
+use fedvla_policy::policy_dir::export;
+use fedvla_policy::{NormStats, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap};
+
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::records::SimFigures;
+use fedvla_aggregator::run_dir::{ModelExporter, POLICY_DIR, ROLLOUTS_DIR};
+
+use super::tokenizer::RunTokenizer;
+use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim};
+
+/// Rolls each round's global model out in the sim (`global_model/round_N/rollouts/`: results.json
+/// with the success rate and one MP4 per episode), on the same seeds every round, for as many
+/// episodes as `rollout-episodes` says at that round (the operator may change it; 0: none).
+pub(super) struct SimRollouts {
+    pub(super) cfg: SmolVlaConfig,
+    pub(super) frozen: Arc<WeightMap>,
+    pub(super) stats: NormStats,
+    pub(super) tokenizer: Tokenizer,
+}
+
+impl ModelExporter for SimRollouts {
+    fn export(
+        &self,
+        round: u64,
+        global: &NamedTensors,
+        config: &RunConfig,
+        dir: &Path,
+    ) -> Result<Option<SimFigures>, BoxError> {
+        // Rolled out where the round is evaluated: every eval-every rounds and the last.
+        let evaluated = round.is_multiple_of(config.eval_every) || round == config.num_server_rounds;
+        if config.rollout_episodes == 0 || !evaluated {
+            return Ok(None);
+        }
+        let mut weights = (*self.frozen).clone();
+        weights.extend(to_weights(global));
+        let policy = SimPolicy::new(&self.cfg, &weights, self.stats.clone(), &self.tokenizer, &Device::flex())?;
+        let source = format!("global model of round {round}");
+        let options = SimEvalOptions {
+            episodes: config.rollout_episodes,
+            max_frames: config.rollout_max_frames as usize,
+            video_size: Some(ROLLOUT_VIDEO_SIZE),
+            ..SimEvalOptions::default()
+        };
+        let summary = evaluate_in_sim(
+            Agent::Policy { policy: &policy, source: &source },
+            &options,
+            &dir.join(ROLLOUTS_DIR),
+            |_, _| {},
+        )
+        .map_err(|e| format!("{e:#}"))?;
+        tracing::info!(
+            round,
+            success_rate = ?summary.success_rate,
+            mean_length = ?summary.mean_length,
+            "global model rolled out in the sim"
+        );
+        Ok(summary.figures())
+    }
+}
+
+/// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
+pub(super) struct LeRobotExport {
+    pub(super) cfg: SmolVlaConfig,
+    pub(super) frozen: Arc<WeightMap>,
+    pub(super) stats: NormStats,
+    pub(super) tokenizer: RunTokenizer,
+    pub(super) dtype: StoredDtype,
+}
+
+impl ModelExporter for LeRobotExport {
+    fn export(
+        &self,
+        _round: u64,
+        global: &NamedTensors,
+        _config: &RunConfig,
+        dir: &Path,
+    ) -> Result<Option<SimFigures>, BoxError> {
+        let mut weights = (*self.frozen).clone();
+        weights.extend(to_weights(global));
+        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, self.tokenizer.backbone(), self.dtype)?;
+        Ok(None)
+    }
+}

@@ -132,7 +132,7 @@ where
             }
             frame = stream.next() => match frame {
                 Some(Ok(Message::Text(text))) => text,
-                Some(Ok(Message::Close(_))) | Some(Err(_)) | None => return None,
+                Some(Ok(Message::Close(_)) | Err(_)) | None => return None,
                 Some(Ok(_)) => {
                     self.refuse(ErrorCode::UnexpectedMessage, "the first message must be a join".into()).await;
                     return None;

@@ -75,13 +75,15 @@ struct RunFigures {
     episodes: u64,
     success_lengths: Vec<f64>,
     train_seconds: f64,
-    /// Per evaluated round: (round, held-out loss, per-round sim success).
-    curve: Vec<(u64, f64, Option<f64>)>,
+    curve: Vec<CurvePoint>,
 }
+
+/// One evaluated round of a run: (round, held-out loss, the round's sim success rate where it was rolled out).
+type CurvePoint = (u64, f64, Option<f64>);
 
 fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
     let metrics = read_metrics(run)?;
-    let curve: Vec<(u64, f64, Option<f64>)> = metrics
+    let curve: Vec<CurvePoint> = metrics
         .iter()
         .filter_map(|l| {
             let g = l.global.as_ref()?;
@@ -164,7 +166,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
     let json = serde_json::to_vec_pretty(&report).expect("the report serializes");
     fedvla_aggregator::run_dir::write_atomic(&dir.join(REPORT_JSON), &json)?;
     fedvla_aggregator::run_dir::write_atomic(&dir.join(REPORT_MD), markdown(&report, config).as_bytes())?;
-    let curves = |pick: fn(&(u64, f64, Option<f64>)) -> Option<f64>| -> Vec<Curve> {
+    let curves = |pick: fn(&CurvePoint) -> Option<f64>| -> Vec<Curve> {
         config
             .arms
             .iter()

@@ -169,7 +169,9 @@ pub fn partition(episodes: &[EpisodeTask], config: &PartitionConfig) -> Result<P
                 let mut weights: Vec<f64> = (0..n).map(|_| gamma.sample(&mut rng)).collect();
                 let total: f64 = weights.iter().sum();
                 if total > 0.0 && total.is_finite() {
-                    weights.iter_mut().for_each(|w| *w /= total);
+                    for w in &mut weights {
+                        *w /= total;
+                    }
                 } else {
                     // Every draw underflowed (tiny alpha): the whole task goes to one client.
                     let pick = task % n;

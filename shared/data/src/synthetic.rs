@@ -44,7 +44,9 @@ pub fn image(width: u32, height: u32, episode: usize, frame: usize, camera: usiz
                 0.5 + 0.4 * (tau * (xf + yf) - phase).cos(),
             ];
             if (x0..x0 + side).contains(&x) && (y0..y0 + side).contains(&y) {
-                rgb.iter_mut().for_each(|v| *v *= 0.2);
+                for v in &mut rgb {
+                    *v *= 0.2;
+                }
             }
             data.extend(rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8));
         }

@@ -131,7 +131,7 @@ pub struct Episode<'a> {
 impl<'a> Episode<'a> {
     /// The episode on `Scene::new(seed)`, at most `max_frames` frames long.
     pub fn new(policy: &'a SimPolicy, seed: u64, max_frames: usize) -> Self {
-        let rng = StdRng::seed_from_u64(seed ^ 0x5eed_0f_a11);
+        let rng = StdRng::seed_from_u64(seed ^ 0x5_eed0_fa11);
         Self { policy, scene: Scene::new(seed), rng, queue: Vec::new().into_iter(), seed, length: 0, max_frames }
     }
 

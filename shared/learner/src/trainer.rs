@@ -123,7 +123,7 @@ impl SmolVlaTrainer {
 
 impl LocalTrainer for SmolVlaTrainer {
     fn capabilities(&self) -> Capabilities {
-        let params: usize = self.trainer.model.cfg.param_specs().iter().map(|s| s.numel()).sum();
+        let params: usize = self.trainer.model.cfg.param_specs().iter().map(fedvla_policy::ParamSpec::numel).sum();
         Capabilities { backend: self.backend.clone(), memory_bytes: (params * 4) as u64 }
     }
 

@@ -336,7 +336,7 @@ impl SmolVlaConfig {
 
     /// Expert layer `l` is joint self-attention (true) or cross-attention into the VLM keys (false).
     pub fn is_self_attn_layer(&self, layer: usize) -> bool {
-        layer % self.self_attn_every_n_layers == 0
+        layer.is_multiple_of(self.self_attn_every_n_layers)
     }
 
     pub fn camera_keys(&self) -> Vec<String> {
@@ -344,11 +344,11 @@ impl SmolVlaConfig {
     }
 
     pub fn state_dim(&self) -> usize {
-        self.input_features.iter().find(|f| f.kind == "STATE").map(|f| f.shape[0]).unwrap_or(0)
+        self.input_features.iter().find(|f| f.kind == "STATE").map_or(0, |f| f.shape[0])
     }
 
     pub fn action_dim(&self) -> usize {
-        self.output_features.iter().find(|f| f.kind == "ACTION").map(|f| f.shape[0]).unwrap_or(0)
+        self.output_features.iter().find(|f| f.kind == "ACTION").map_or(0, |f| f.shape[0])
     }
 
     /// Image tokens per camera after the pixel-shuffle connector.
@@ -369,16 +369,16 @@ impl SmolVlaConfig {
                 self.num_vlm_layers, t.num_hidden_layers
             ));
         }
-        if t.num_attention_heads % t.num_key_value_heads != 0 {
+        if !t.num_attention_heads.is_multiple_of(t.num_key_value_heads) {
             return bad(format!(
                 "num_attention_heads {} is not a multiple of num_key_value_heads {}",
                 t.num_attention_heads, t.num_key_value_heads
             ));
         }
-        if v.hidden_size % v.num_attention_heads != 0 || v.image_size % v.patch_size != 0 {
+        if !v.hidden_size.is_multiple_of(v.num_attention_heads) || !v.image_size.is_multiple_of(v.patch_size) {
             return bad("vision hidden_size/heads or image_size/patch_size do not divide".into());
         }
-        if (v.image_size / v.patch_size) % self.vlm.scale_factor != 0 {
+        if !(v.image_size / v.patch_size).is_multiple_of(self.vlm.scale_factor) {
             return bad(format!(
                 "patch grid {} is not divisible by the connector scale_factor {}",
                 v.image_size / v.patch_size,

@@ -101,7 +101,7 @@ impl SmolVla {
         let b = obs.batch;
         let scale = (self.cfg.vlm.text_config.hidden_size as f64).sqrt();
         let images = self.embed_images(obs);
-        let per_image = images.first().map(|t| t.dims()[1]).unwrap_or(0);
+        let per_image = images.first().map_or(0, |t| t.dims()[1]);
         let mut parts: Vec<Tensor<3>> = images.into_iter().map(|t| t * scale).collect();
         parts.push(self.vlm.embed_language(&obs.lang_tokens, b, obs.lang_len) * scale);
         let context = Tensor::cat(parts, 1);

@@ -53,12 +53,12 @@ impl Perturbation {
         let decay = (-1.0 / self.noise.correlation_frames.max(1.0)).exp();
         let kick = (1.0 - decay * decay).sqrt() * self.noise.std_degrees;
         let mut executed = *action;
-        for joint in 0..JOINT_COUNT {
+        for (joint, (offset, executed)) in self.offset.iter_mut().zip(executed.iter_mut()).enumerate() {
             if joint == GRIPPER {
                 continue;
             }
-            self.offset[joint] = decay * self.offset[joint] + kick * self.rng.gaussian();
-            executed[joint] += self.offset[joint];
+            *offset = decay * *offset + kick * self.rng.gaussian();
+            *executed += *offset;
         }
         executed
     }

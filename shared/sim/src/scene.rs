@@ -261,7 +261,7 @@ impl Scene {
 
     /// Whether any arm collider is in contact with the cube.
     pub fn arm_touches_cube(&self) -> bool {
-        self.cube_contacts(&self.arm_colliders).any(|pair| pair.has_any_active_contact())
+        self.cube_contacts(&self.arm_colliders).any(rapier3d::geometry::ContactPair::has_any_active_contact)
     }
 
     /// Whether the cube is held by the gripper (see the module notes on grasping).

@@ -133,7 +133,7 @@ pub(super) fn write_episodes(
     cameras: &[&CameraSpec],
     features: &Features,
 ) -> Result<()> {
-    let path = info::v30_path(&root, EPISODES_PATH_V30, 0, 0, None);
+    let path = info::v30_path(root, EPISODES_PATH_V30, 0, 0, None);
     let eps = &episodes;
     let i64_col = |f: &dyn Fn(&EpisodeRecord) -> i64| -> arrow_array::ArrayRef {
         std::sync::Arc::new(arrow_array::Int64Array::from(eps.iter().map(f).collect::<Vec<_>>()))

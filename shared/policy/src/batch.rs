@@ -243,15 +243,36 @@ impl Prepared {
                 Ok(prepare_image(img, tw, th).to_tensor::<4>(device))
             })
             .collect::<Result<_, _>>()?;
+        let lang_len = language_columns(cfg, batch);
         Ok(Self {
             images,
-            lang_tokens: batch.lang_tokens.clone(),
-            lang_mask: batch.lang_mask.clone(),
-            lang_len: batch.lang_len,
+            lang_tokens: leading_columns(&batch.lang_tokens, batch.lang_len, lang_len),
+            lang_mask: leading_columns(&batch.lang_mask, batch.lang_len, lang_len),
+            lang_len,
             state: pad_last_dim(&batch.state, cfg.max_state_dim).to_tensor(device),
             batch: b,
         })
     }
+}
+
+/// How many language columns the model reads: all of them for `pad_language_to = "max_length"`; for `"longest"`,
+/// as LeRobot's tokenizer step pads, up to the last column any row of the batch uses (at least one). A shard
+/// stores every task padded to `tokenizer_max_length`; the columns no row uses are masked out of every attention,
+/// so dropping them changes no output and spares the text layers and the expert their cost.
+fn language_columns(cfg: &SmolVlaConfig, batch: &Batch) -> usize {
+    if cfg.pad_language_to == "max_length" || batch.lang_len == 0 {
+        return batch.lang_len;
+    }
+    let last_used = |row: &[bool]| row.iter().rposition(|&m| m).map_or(0, |i| i + 1);
+    batch.lang_mask.chunks(batch.lang_len).map(last_used).max().unwrap_or(0).max(1)
+}
+
+/// The first `keep` columns of each `width`-long row.
+fn leading_columns<T: Copy>(rows: &[T], width: usize, keep: usize) -> Vec<T> {
+    if width == 0 {
+        return Vec::new();
+    }
+    rows.chunks(width).flat_map(|row| row[..keep].iter().copied()).collect()
 }
 
 /// `[B, T, A]` normalised actions zero-padded to `[B, T, max_action_dim]`, on a device.

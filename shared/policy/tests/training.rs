@@ -1,6 +1,7 @@
 //! Training the tiny SmolVLA: the loss falls on a fixed batch and the frozen tensors never move.
 
 use burn::tensor::Device;
+use fedvla_policy::batch::Prepared;
 use fedvla_policy::weights::init_random;
 use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
 
@@ -64,6 +65,44 @@ fn the_proximal_term_adds_mu_times_the_distance_from_the_anchor_to_every_gradien
         for (i, (with, without)) in proximal[name].data.iter().zip(&g.data).enumerate() {
             let expected = without + (mu as f32) * (w[i] - w0[i]);
             assert!((with - expected).abs() <= 1e-5 * (1.0 + expected.abs()), "{name}[{i}]: {with} != {expected}");
+        }
+    }
+}
+
+/// A shard stores every task padded to `tokenizer_max_length`; with `pad_language_to = "longest"` the model reads
+/// only the columns some row uses, as LeRobot pads: the loss and every gradient are those of the unpadded batch.
+#[test]
+fn language_padding_no_row_uses_changes_neither_the_loss_nor_any_gradient() {
+    let cfg = SmolVlaConfig::tiny();
+    assert_eq!(cfg.pad_language_to, "longest");
+    let weights = init_random(&cfg.param_specs(), 1);
+    let device = Device::flex().autodiff();
+    let mut batch = Batch::random(&cfg, 3, 4);
+    // Row 1 uses 4 of the 6 columns, the others all 6.
+    let len = batch.lang_len;
+    for i in 4..len {
+        batch.lang_mask[len + i] = false;
+        batch.lang_tokens[len + i] = 0;
+    }
+    let mut padded = batch.clone();
+    let width = cfg.tokenizer_max_length;
+    padded.lang_len = width;
+    padded.lang_tokens =
+        batch.lang_tokens.chunks(len).flat_map(|r| r.iter().copied().chain([0].repeat(width - len))).collect();
+    padded.lang_mask =
+        batch.lang_mask.chunks(len).flat_map(|r| r.iter().copied().chain([false].repeat(width - len))).collect();
+    let prepared = Prepared::new(&cfg, &padded, &Device::flex()).unwrap();
+    assert_eq!((prepared.lang_len, prepared.lang_mask.len()), (len, 3 * len));
+    let step = |batch: &Batch| {
+        let mut trainer = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+        let (noise, time) = trainer.sample_noise_and_time(3);
+        trainer.train_step_with(batch, noise, &time, 1e-3).unwrap()
+    };
+    let ((short_report, short), (long_report, long)) = (step(&batch), step(&padded));
+    assert!((short_report.loss - long_report.loss).abs() <= 1e-6, "{} != {}", short_report.loss, long_report.loss);
+    for (name, g) in &short {
+        for (a, b) in g.data.iter().zip(&long[name].data) {
+            assert!((a - b).abs() <= 1e-6 * (1.0 + a.abs()), "{name}: {a} != {b}");
         }
     }
 }

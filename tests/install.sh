@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # What the test command needs on a fresh Debian machine, installed when it is missing (so a second run installs
-# nothing): the wasm32 target and rustfmt, Debian's packages, and the wasm-bindgen and wasm-pack CLIs under
+# nothing): the wasm32 target, rustfmt and clippy, Debian's packages, and the wasm-bindgen and wasm-pack CLIs under
 # $FEDVLA_CACHE/tools. Needs root for apt-get when a package is missing. Called by tests/run.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -10,6 +10,7 @@ export PATH="$cache/tools/bin:$PATH"
 
 rustup target list --installed | grep -qx wasm32-unknown-unknown || rustup target add wasm32-unknown-unknown
 rustup component list --installed | grep -q '^rustfmt' || rustup component add rustfmt
+rustup component list --installed | grep -q '^clippy' || rustup component add clippy
 
 # g++/pkg-config: OpenH264 is compiled from its crate's source. Chromium and chromedriver: the browser tests.
 # libdav1d-dev: AV1 decoding; ffmpeg (with libsvtav1): encodes the AV1 test clip as LeRobot does.

@@ -64,7 +64,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     };
     let version = completed.unwrap_or(0);
     let bytes = global.to_safetensors().map_err(StartError::Spec)?;
-    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel { version, safetensors: Bytes::from(bytes) }));
+    let (model_tx, model_rx) = watch::channel(Arc::new(PublishedModel::first(version, Bytes::from(bytes))));
     let (status_tx, status) = watch::channel(RunStatus { completed_rounds: version, ..RunStatus::default() });
     let (events_tx, events) = mpsc::channel(1024);
     let generated_token = config.operator_token.is_empty();

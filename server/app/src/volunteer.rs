@@ -144,17 +144,16 @@ async fn get_shard_manifest(
     Ok(([(CONTENT_TYPE, "application/json")], json).into_response())
 }
 
-/// The global trainable tensors of the current version.
+/// The global trainable tensors of the current version (or of the one before it).
 async fn get_model(
     _: RunToken,
     Path(version): Path<u64>,
     State(state): State<VolunteerState>,
 ) -> Result<Response, ServerError> {
     let model = state.model.borrow().clone();
-    if model.version != version {
-        return Err(ServerError::ModelVersion { requested: version, current: model.version });
-    }
-    Ok(([(CONTENT_TYPE, "application/octet-stream")], model.safetensors.clone()).into_response())
+    let bytes =
+        model.bytes_of(version).ok_or(ServerError::ModelVersion { requested: version, current: model.version })?;
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes.clone()).into_response())
 }
 
 /// Stores a rollout video as `evaluate/round_N/client_K/<file>`.

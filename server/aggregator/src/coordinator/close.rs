@@ -117,7 +117,8 @@ impl Running {
             Ok((line, bytes))
         })
         .await?;
-        self.c.model_tx.send_replace(Arc::new(PublishedModel { version: round, safetensors: Bytes::from(bytes) }));
+        let published = self.c.model_tx.borrow().next(round, Bytes::from(bytes));
+        self.c.model_tx.send_replace(Arc::new(published));
         self.c.completed = Some(round);
         self.c.status_tx.send_modify(|s| s.completed_rounds = round);
         tracing::info!(round, "round completed");

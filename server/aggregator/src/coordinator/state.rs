@@ -79,11 +79,34 @@ pub struct UpdateReceived {
     pub bytes: u64,
 }
 
-/// The global model as served: its version and safetensors bytes.
+/// The global model as served: its version and safetensors bytes, and the version before it, which a volunteer
+/// may still ask for when a round closed between its reading the setup (or its task) and its download.
 #[derive(Debug, Clone)]
 pub struct PublishedModel {
     pub version: u64,
     pub safetensors: Bytes,
+    previous: Option<(u64, Bytes)>,
+}
+
+impl PublishedModel {
+    /// The first model a run serves.
+    pub fn first(version: u64, safetensors: Bytes) -> Self {
+        Self { version, safetensors, previous: None }
+    }
+
+    /// The model that follows this one; this one stays downloadable as the previous version.
+    pub fn next(&self, version: u64, safetensors: Bytes) -> Self {
+        Self { version, safetensors, previous: Some((self.version, self.safetensors.clone())) }
+    }
+
+    /// The bytes of `version` while it is the current or the previous one.
+    pub fn bytes_of(&self, version: u64) -> Option<&Bytes> {
+        match &self.previous {
+            _ if version == self.version => Some(&self.safetensors),
+            Some((previous, bytes)) if *previous == version => Some(bytes),
+            _ => None,
+        }
+    }
 }
 
 /// Where the run stands, published after every change.
@@ -159,5 +182,22 @@ pub(super) async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + '
     match tokio::task::spawn_blocking(f).await {
         Ok(out) => out,
         Err(e) => std::panic::resume_unwind(e.into_panic()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_current_and_the_previous_model_are_served_and_no_older_one() {
+        let first = PublishedModel::first(3, Bytes::from_static(b"three"));
+        assert_eq!(first.bytes_of(3).map(|b| &b[..]), Some(&b"three"[..]));
+        assert!(first.bytes_of(2).is_none());
+        let second = first.next(4, Bytes::from_static(b"four"));
+        let third = second.next(5, Bytes::from_static(b"five"));
+        assert_eq!(third.bytes_of(5).map(|b| &b[..]), Some(&b"five"[..]));
+        assert_eq!(third.bytes_of(4).map(|b| &b[..]), Some(&b"four"[..]));
+        assert!(third.bytes_of(3).is_none() && third.bytes_of(6).is_none());
     }
 }

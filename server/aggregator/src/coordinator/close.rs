@@ -7,7 +7,7 @@ use bytes::Bytes;
 use fedvla_federation::{AggregateError, BoxError, ErrorCode, EvalMetrics, NamedTensors, aggregate};
 
 use super::round::RoundState;
-use super::state::{CoordinatorError, PublishedModel, Running, blocking};
+use super::state::{CoordinatorError, Running, blocking};
 use crate::records::{GlobalMetrics, MetricsLine, timestamp};
 use crate::run_dir::RunDirError;
 

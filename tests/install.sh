@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # What the test command needs on a fresh Debian machine, installed when it is missing (so a second run installs
 # nothing): the wasm32 target, rustfmt and clippy, Debian's packages, and the wasm-bindgen and wasm-pack CLIs under
-# $FEDVLA_CACHE/tools. Needs root for apt-get when a package is missing. Called by tests/run.sh.
+# $FEDVLA_CACHE/tools. Needs root for apt-get when a package is missing. Called by tests/native-env.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cache="${FEDVLA_CACHE:-$HOME/.cache/fedvla}"

@@ -134,7 +134,7 @@ impl Table {
         let mut out = Vec::with_capacity(self.num_rows());
         for col in self.columns(name)? {
             if let Some(a) = col.as_primitive_opt::<Int64Type>() {
-                out.extend(a.iter().map(std::option::Option::unwrap_or_default));
+                out.extend(a.iter().map(Option::unwrap_or_default));
             } else if let Some(a) = col.as_primitive_opt::<Int32Type>() {
                 out.extend(a.iter().map(|v| i64::from(v.unwrap_or_default())));
             } else {
@@ -148,7 +148,7 @@ impl Table {
         let mut out = Vec::with_capacity(self.num_rows());
         for col in self.columns(name)? {
             if let Some(a) = col.as_primitive_opt::<Float64Type>() {
-                out.extend(a.iter().map(std::option::Option::unwrap_or_default));
+                out.extend(a.iter().map(Option::unwrap_or_default));
             } else if let Some(a) = col.as_primitive_opt::<Float32Type>() {
                 out.extend(a.iter().map(|v| f64::from(v.unwrap_or_default())));
             } else {
@@ -232,7 +232,7 @@ fn flat_numbers(array: &ArrayRef) -> Option<Vec<f64>> {
         }
         Some(out)
     } else if let Some(a) = array.as_primitive_opt::<Float64Type>() {
-        Some(a.iter().map(std::option::Option::unwrap_or_default).collect())
+        Some(a.iter().map(Option::unwrap_or_default).collect())
     } else if let Some(a) = array.as_primitive_opt::<Float32Type>() {
         Some(a.iter().map(|v| f64::from(v.unwrap_or_default())).collect())
     } else {

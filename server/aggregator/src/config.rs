@@ -84,6 +84,61 @@ pub enum AttackKind {
     Noise,
 }
 
+/// One of LeRobot's switches of what is trained (`freeze-vision-encoder`, `train-expert-only`): `true`,
+/// `false`, or `"auto"`: on (LeRobot's default) for a run from an `init-policy` checkpoint, whose backbone is
+/// pretrained and worth keeping, off from random initialisation, where there is nothing pretrained to keep
+/// frozen (server/LEARNING.md, E13: 14% success with the backbone frozen against 38% trained).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrainSwitch {
+    Auto,
+    On,
+    Off,
+}
+
+impl TrainSwitch {
+    /// The switch's value for a run that starts from a checkpoint (`from_checkpoint`) or from random weights.
+    pub fn resolve(self, from_checkpoint: bool) -> bool {
+        match self {
+            Self::Auto => from_checkpoint,
+            Self::On => true,
+            Self::Off => false,
+        }
+    }
+}
+
+impl Serialize for TrainSwitch {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Self::Auto => serializer.serialize_str("auto"),
+            Self::On => serializer.serialize_bool(true),
+            Self::Off => serializer.serialize_bool(false),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for TrainSwitch {
+    /// `true`, `false` or `"auto"`; a command-line override arrives as the text `true`/`false` (the default's
+    /// value is a string), so those spellings are accepted as strings too.
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Repr {
+            Bool(bool),
+            Text(String),
+        }
+        match Repr::deserialize(deserializer)? {
+            Repr::Bool(true) => Ok(Self::On),
+            Repr::Bool(false) => Ok(Self::Off),
+            Repr::Text(t) => match t.as_str() {
+                "auto" => Ok(Self::Auto),
+                "true" => Ok(Self::On),
+                "false" => Ok(Self::Off),
+                other => Err(serde::de::Error::custom(format!("expected true, false or \"auto\", got {other:?}"))),
+            },
+        }
+    }
+}
+
 /// The dtype of each round's exported `model.safetensors`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -133,8 +188,8 @@ pub struct RunConfig {
     pub model_size: String,
     pub init_policy: String,
     pub export_dtype: ExportDtype,
-    pub freeze_vision_encoder: bool,
-    pub train_expert_only: bool,
+    pub freeze_vision_encoder: TrainSwitch,
+    pub train_expert_only: TrainSwitch,
     pub image_size: usize,
     pub patch_size: usize,
     pub chunk_size: usize,
@@ -204,6 +259,13 @@ impl RunConfig {
             };
             let value =
                 parse_value(raw, current).map_err(|message| ConfigError::BadValue { key: key.into(), message })?;
+            // A value of the right TOML type can still be refused by the key's own type (an unknown strategy name):
+            // tried alone on this configuration, so the error names the key.
+            let mut alone = toml::Table::try_from(self).expect("config serializes to a table");
+            alone.insert(key.into(), value.clone());
+            alone
+                .try_into::<Self>()
+                .map_err(|e| ConfigError::BadValue { key: key.into(), message: e.message().to_owned() })?;
             table.insert(key.into(), value);
         }
         let cfg: Self = table.try_into().map_err(|e: toml::de::Error| ConfigError::BadValue {
@@ -361,6 +423,19 @@ mod tests {
         let cfg = RunConfig::default();
         assert_eq!(cfg.strategy, StrategyKind::Fedavg);
         assert_eq!(RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(), cfg);
+    }
+
+    #[test]
+    fn the_trained_parts_default_to_lerobots_switches_from_a_checkpoint_and_to_everything_from_random_weights() {
+        let cfg = RunConfig::default();
+        assert_eq!((cfg.freeze_vision_encoder, cfg.train_expert_only), (TrainSwitch::Auto, TrainSwitch::Auto));
+        assert!(cfg.train_expert_only.resolve(true) && !cfg.train_expert_only.resolve(false));
+        let set = cfg.with_overrides("train-expert-only=true freeze-vision-encoder=false").unwrap();
+        assert_eq!((set.train_expert_only, set.freeze_vision_encoder), (TrainSwitch::On, TrainSwitch::Off));
+        assert!(set.train_expert_only.resolve(false) && !set.freeze_vision_encoder.resolve(true));
+        assert_eq!(RunConfig::from_toml(&set.to_toml(), "resolved").unwrap(), set);
+        let err = RunConfig::default().with_overrides("train-expert-only=yes").unwrap_err().to_string();
+        assert!(err.contains("train-expert-only") && err.contains("\"yes\""), "{err}");
     }
 
     #[test]

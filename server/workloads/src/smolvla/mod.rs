@@ -159,8 +159,11 @@ pub fn episodes_to_partition(
 
 /// `model-size` with the run configuration's changes to it (what is trained, image and patch size, action chunk).
 fn model_config(config: &RunConfig) -> anyhow::Result<SmolVlaConfig> {
-    let mut cfg = SmolVlaConfig::preset(&config.model_size)?
-        .with_trained_parts(config.freeze_vision_encoder, config.train_expert_only);
+    let from_checkpoint = !config.init_policy.is_empty();
+    let mut cfg = SmolVlaConfig::preset(&config.model_size)?.with_trained_parts(
+        config.freeze_vision_encoder.resolve(from_checkpoint),
+        config.train_expert_only.resolve(from_checkpoint),
+    );
     if config.image_size > 0 || config.patch_size > 0 {
         let v = &cfg.vlm.vision_config;
         let size = if config.image_size > 0 { config.image_size } else { v.image_size };

@@ -37,7 +37,7 @@ async fn start_server(tmp: &Path, overrides: &str) -> (ServerHandle, RunDir) {
     let cfg = RunConfig::default()
         .with_overrides(&format!(
             "workload=smolvla model-size=tiny dataset={} output-dir={} num-clients=2 min-clients=2 min-fit=2 \
-             local-steps=6 batch-size=4 lr=0.001 rollout-episodes=0 client-rollout-episodes=1 rollout-max-frames=30 \
+             local-steps=6 batch-size=4 lr=0.001 eval-every=1 rollout-episodes=0 client-rollout-episodes=1 rollout-max-frames=30 \
              max-frame-bytes=65536 operator-token={OPERATOR_TOKEN} www-dir={} {overrides}",
             data.display(),
             tmp.join("out").display(),

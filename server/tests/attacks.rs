@@ -1,4 +1,4 @@
-//! One attacker among five clients, sampled every round, sending its update scaled by 100 (and, separately,
+//! One attacker among five clients (seven for Bulyan), sampled every round, sending its update scaled by 100 (and, separately,
 //! sign-flipped): FedAvg is broken by it, while the robust rules stay where they are without the attacker.
 //! On the linreg workload, over loopback, through `simulate`'s own client spawning.
 
@@ -12,7 +12,7 @@ fn final_loss(overrides: &str) -> f64 {
     let tmp = tempfile::tempdir().unwrap();
     let config = RunConfig::default()
         .with_overrides(&format!(
-            "workload=linreg num-clients=5 min-clients=5 min-fit=5 fraction-fit=1.0 num-server-rounds=3 \
+            "workload=linreg num-clients=5 min-clients=5 min-fit=5 fraction-fit=1.0 num-server-rounds=3 eval-every=1 \
              local-steps=30 batch-size=8 lr=0.05 round-deadline-ms=20000 {overrides}"
         ))
         .unwrap();
@@ -31,7 +31,15 @@ fn fedavg_breaks_under_one_attacker_and_the_robust_rules_do_not() {
         let broken = final_loss(&format!("strategy=fedavg attackers=1 {attack}"));
         println!("fedavg, {attack}: held-out loss {clean:.5} without the attacker, {broken:.5} with");
         assert!(broken > 10.0 * clean, "{attack}: FedAvg's loss {clean} -> {broken} under attack");
-        for rule in ["strategy=median", "strategy=trimmed-mean", "strategy=krum", "strategy=multi-krum krum-keep=3"] {
+        let rules = [
+            "strategy=median",
+            "strategy=trimmed-mean",
+            "strategy=krum",
+            "strategy=multi-krum krum-keep=3",
+            // Bulyan needs 4f + 3 = 7 clients for its one attacker.
+            "strategy=bulyan num-clients=7 min-clients=7 min-fit=7",
+        ];
+        for rule in rules {
             let without = final_loss(rule);
             let with = final_loss(&format!("{rule} attackers=1 {attack}"));
             println!("{rule}, {attack}: held-out loss {without:.5} without the attacker, {with:.5} with");

@@ -246,6 +246,9 @@ async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
         ("trimmed-mean", ""),
         ("krum", five),
         ("multi-krum", five),
+        ("bulyan", "num-clients=7 min-clients=7 min-fit=7"),
+        ("fedavg", "dp-noise-multiplier=0.1 dp-clip-norm=0.5"),
+        ("fedadam", "dp-noise-multiplier=0.1 dp-clip-norm=0.5 dp-clip-quantile=0.5 dp-clip-count-stddev=1"),
     ] {
         let base = tempfile::tempdir().unwrap();
         // The adaptive optimizers take per-coordinate steps of about server-lr: small ones for a least-squares fit.
@@ -275,5 +278,13 @@ async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
         let lines = fedvla_aggregator::records::read_metrics(run_dir.path()).unwrap();
         let loss = |i: usize| lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss;
         assert!(loss(3).is_finite() && loss(3) < loss(0), "{strategy}: held-out loss {} -> {}", loss(0), loss(3));
+        // DP-FedAvg reports the privacy each round has spent: nothing before round 1, more with every round.
+        let epsilon = |i: usize| lines[i].privacy.map(|p| p.spent.epsilon);
+        if extra.contains("dp-") {
+            assert_eq!(epsilon(0), Some(0.0), "{strategy} {extra}");
+            assert!(epsilon(1) > Some(0.0) && epsilon(3) > epsilon(1), "{strategy} {extra}: {:?}", epsilon(3));
+        } else {
+            assert_eq!(epsilon(3), None, "{strategy} {extra}");
+        }
     }
 }

@@ -51,6 +51,9 @@ pub enum StrategyKind {
     Krum,
     /// The mean of the `krum-keep` updates Krum ranks best.
     MultiKrum,
+    /// Krum's `n - 2 krum-f` best, then per coordinate the mean of the `n - 4 krum-f` nearest their median
+    /// (needs min-fit >= 4 krum-f + 3).
+    Bulyan,
 }
 
 pub use fedvla_federation::WorkloadKind;
@@ -174,6 +177,12 @@ pub struct RunConfig {
     pub krum_f: usize,
     pub krum_keep: usize,
     pub clip_update_norm: f64,
+    pub dp_noise_multiplier: f64,
+    pub dp_clip_norm: f64,
+    pub dp_clip_quantile: f64,
+    pub dp_clip_lr: f64,
+    pub dp_clip_count_stddev: f64,
+    pub dp_delta: f64,
     pub attackers: usize,
     pub attack: AttackKind,
     pub attack_strength: f64,
@@ -299,6 +308,81 @@ impl RunConfig {
     }
 
     /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
+    /// Whether client-level DP-FedAvg wraps the strategy.
+    pub fn dp_enabled(&self) -> bool {
+        self.dp_noise_multiplier > 0.0
+    }
+
+    /// The rate at which a round samples clients from all `num-clients` (what the privacy accountant needs).
+    pub fn dp_sampling_rate(&self) -> f64 {
+        self.sampled_clients(self.num_clients) as f64 / self.num_clients as f64
+    }
+
+    /// The noise on the adaptive clipping norm's count of clipped clients: as configured, or (0) Andrew et al.'s
+    /// choice of the expected sampled clients / 20.
+    pub fn dp_count_stddev(&self) -> f64 {
+        match self.dp_clip_count_stddev {
+            0.0 => self.sampled_clients(self.num_clients) as f64 / 20.0,
+            s => s,
+        }
+    }
+
+    fn validate_dp(&self) -> Result<(), ConfigError> {
+        let fail = |m: String| Err(ConfigError::Invalid(m));
+        let finite_at_least_0 = |v: f64| v.is_finite() && v >= 0.0;
+        if !finite_at_least_0(self.dp_noise_multiplier) || !finite_at_least_0(self.dp_clip_count_stddev) {
+            return fail(format!(
+                "dp-noise-multiplier and dp-clip-count-stddev must be 0 or positive, got {} and {}",
+                self.dp_noise_multiplier, self.dp_clip_count_stddev
+            ));
+        }
+        if !self.dp_enabled() {
+            return Ok(());
+        }
+        if !(self.dp_clip_norm.is_finite() && self.dp_clip_norm > 0.0) {
+            return fail(format!("dp-clip-norm must be positive, got {}", self.dp_clip_norm));
+        }
+        let delta_ok = self.dp_delta > 0.0 && self.dp_delta < 1.0;
+        if !delta_ok || !(0.0..1.0).contains(&self.dp_clip_quantile) {
+            return fail(format!(
+                "dp-delta must be in (0, 1) and dp-clip-quantile in [0, 1), got {} and {}",
+                self.dp_delta, self.dp_clip_quantile
+            ));
+        }
+        let mean_based = [
+            StrategyKind::Fedavg,
+            StrategyKind::Fedprox,
+            StrategyKind::Fedavgm,
+            StrategyKind::Fedadagrad,
+            StrategyKind::Fedyogi,
+            StrategyKind::Fedadam,
+        ];
+        if !mean_based.contains(&self.strategy) {
+            return fail(format!(
+                "dp-noise-multiplier needs a strategy that averages (fedavg, fedprox or a server optimizer): the \
+                 noise is sized to what one client can move a mean, not a {:?}",
+                self.strategy
+            ));
+        }
+        if self.clip_update_norm > 0.0 {
+            return fail("clip-update-norm and dp-noise-multiplier both clip: DP-FedAvg clips to dp-clip-norm".into());
+        }
+        if self.dp_clip_quantile > 0.0 {
+            if !(self.dp_clip_lr.is_finite() && self.dp_clip_lr > 0.0) {
+                return fail(format!("dp-clip-lr must be positive, got {}", self.dp_clip_lr));
+            }
+            let count = self.dp_count_stddev();
+            if self.dp_noise_multiplier >= 2.0 * count {
+                return fail(format!(
+                    "adaptive clipping spends part of the noise on its count: dp-noise-multiplier ({}) must be below \
+                     2 x the count's standard deviation ({count}); raise dp-clip-count-stddev",
+                    self.dp_noise_multiplier
+                ));
+            }
+        }
+        Ok(())
+    }
+
     pub fn sampled_clients(&self, connected: usize) -> usize {
         ((self.fraction_fit * connected as f64).ceil() as usize).max(self.min_fit).min(connected)
     }
@@ -364,6 +448,14 @@ impl RunConfig {
                 ));
             }
         }
+        if self.strategy == StrategyKind::Bulyan && self.min_fit < 4 * self.krum_f + 3 {
+            return fail(format!(
+                "bulyan with krum-f={} needs at least {} updates a round (n >= 4f + 3), but min-fit is {}",
+                self.krum_f,
+                4 * self.krum_f + 3,
+                self.min_fit
+            ));
+        }
         if self.attackers > self.num_clients || !(self.attack_strength.is_finite() && self.attack_strength > 0.0) {
             return fail(format!(
                 "attackers ({}) must be at most num-clients ({}) and attack-strength positive, got {}",
@@ -373,6 +465,7 @@ impl RunConfig {
         if !(self.clip_update_norm.is_finite() && self.clip_update_norm >= 0.0) {
             return fail(format!("clip-update-norm must be 0 (off) or positive, got {}", self.clip_update_norm));
         }
+        self.validate_dp()?;
         UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).map_err(ConfigError::Invalid)?;
         if !(0.0..0.5).contains(&self.trim_beta) {
             return fail(format!("trim-beta must be in [0, 0.5), got {}", self.trim_beta));
@@ -447,8 +540,31 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("= [1, 4], got 9"), "{err}");
+        let err = RunConfig::default()
+            .with_overrides("strategy=bulyan krum-f=1 num-clients=5 min-clients=5 min-fit=5")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("needs at least 7 updates") && err.contains("min-fit is 5"), "{err}");
         let ok = RunConfig::default().with_overrides("strategy=krum krum-f=1 num-clients=5 min-clients=5 min-fit=5");
         assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    #[test]
+    fn dp_settings_it_cannot_honour_are_refused() {
+        let refused = |overrides: &str| RunConfig::default().with_overrides(overrides).unwrap_err().to_string();
+        let err = refused("dp-noise-multiplier=1 strategy=median");
+        assert!(err.contains("needs a strategy that averages"), "{err}");
+        let err = refused("dp-noise-multiplier=1 clip-update-norm=2");
+        assert!(err.contains("both clip"), "{err}");
+        let err = refused("dp-noise-multiplier=1 dp-clip-norm=0");
+        assert!(err.contains("dp-clip-norm must be positive"), "{err}");
+        // 3 sampled clients: the count's noise defaults to 3/20, too little to leave a noise multiplier of 1.
+        let err = refused("dp-noise-multiplier=1 dp-clip-quantile=0.5");
+        assert!(err.contains("dp-noise-multiplier (1) must be below 2 x") && err.contains("(0.15)"), "{err}");
+        let cfg = RunConfig::default()
+            .with_overrides("dp-noise-multiplier=1 dp-clip-quantile=0.5 dp-clip-count-stddev=1 fraction-fit=0.5")
+            .unwrap();
+        assert_eq!((cfg.dp_count_stddev(), cfg.dp_sampling_rate()), (1.0, 2.0 / 3.0));
     }
 
     #[test]

@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use fedvla_federation::{EvalMetrics, RolloutEpisode};
+use fedvla_federation::{EvalMetrics, PrivacyReport, RolloutEpisode};
 use serde::{Deserialize, Serialize};
 
 use crate::control::Settings;
@@ -54,6 +54,9 @@ pub struct MetricsLine {
     pub train_loss: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub samples: Option<u64>,
+    /// DP-FedAvg: the privacy spent by the rounds so far, and the clipping norm the next round uses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub privacy: Option<PrivacyReport>,
 }
 
 /// A global model's figures: its held-out evaluation and its rollouts in the sim.

@@ -7,8 +7,8 @@ use fedvla_aggregator::parts::ServerParts;
 use fedvla_aggregator::registry::VolunteerOffer;
 use fedvla_aggregator::run_dir::{ModelExporter, RunDir};
 use fedvla_federation::{
-    Adaptivity, BoxError, ClippedUpdates, Evaluator, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg,
-    Krum, NamedTensors, Strategy,
+    Adaptivity, BoxError, Bulyan, ClipNorm, ClippedUpdates, DpFedAvg, Evaluator, FedAdaptive, FedAvg, FedAvgM,
+    FedMedian, FedProx, FedTrimmedAvg, Krum, NamedTensors, Strategy, fnv1a, mix,
 };
 
 pub trait Workload {
@@ -51,6 +51,23 @@ pub fn strategy(c: &RunConfig) -> Box<dyn Strategy> {
         StrategyKind::TrimmedMean => Box::new(FedTrimmedAvg { beta: c.trim_beta }),
         StrategyKind::Krum => Box::new(Krum { f: c.krum_f, keep: 1 }),
         StrategyKind::MultiKrum => Box::new(Krum { f: c.krum_f, keep: c.krum_keep }),
+        StrategyKind::Bulyan => Box::new(Bulyan { f: c.krum_f }),
     };
-    if c.clip_update_norm > 0.0 { Box::new(ClippedUpdates { inner: rule, max_norm: c.clip_update_norm }) } else { rule }
+    if c.dp_enabled() {
+        let clip = match c.dp_clip_quantile {
+            0.0 => ClipNorm::Fixed(c.dp_clip_norm),
+            quantile => ClipNorm::Adaptive {
+                initial: c.dp_clip_norm,
+                target_quantile: quantile,
+                lr: c.dp_clip_lr,
+                count_stddev: c.dp_count_stddev(),
+            },
+        };
+        let seed = mix(c.seed, fnv1a("dp-noise"));
+        Box::new(DpFedAvg::new(rule, c.dp_noise_multiplier, clip, c.dp_sampling_rate(), c.dp_delta, seed))
+    } else if c.clip_update_norm > 0.0 {
+        Box::new(ClippedUpdates { inner: rule, max_norm: c.clip_update_norm })
+    } else {
+        rule
+    }
 }

@@ -3,6 +3,7 @@
 //!
 //! No tokio, axum or wasm-bindgen: this crate compiles for `wasm32-unknown-unknown`.
 
+pub mod accountant;
 pub mod client;
 pub mod codec;
 pub mod error;
@@ -27,7 +28,7 @@ pub use protocol::{
 };
 pub use seed::{fnv1a, mix};
 pub use strategy::{
-    Adaptivity, Aggregation, ClippedUpdates, FedAdaptive, FedAvg, FedAvgM, FedMedian, FedProx, FedTrimmedAvg, Krum,
-    Step, Strategy, WeightedMean, aggregate,
+    Adaptivity, Aggregation, Bulyan, ClipNorm, ClippedUpdates, DpFedAvg, FedAdaptive, FedAvg, FedAvgM, FedMedian,
+    FedProx, FedTrimmedAvg, Krum, PrivacyReport, Step, Strategy, WeightedMean, aggregate,
 };
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

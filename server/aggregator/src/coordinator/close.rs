@@ -106,7 +106,20 @@ impl Running {
         line.rejections =
             std::mem::take(&mut self.round_rejections).into_iter().map(|(c, n)| (c.as_str().to_owned(), n)).collect();
         line.timestamp = timestamp();
-        let state = self.c.strategy.lock().expect("strategy lock").state();
+        let (state, privacy) = {
+            let strategy = self.c.strategy.lock().expect("strategy lock");
+            (strategy.state(), strategy.privacy())
+        };
+        if let Some(p) = &privacy {
+            tracing::info!(
+                round,
+                epsilon = p.spent.epsilon,
+                delta = p.spent.delta,
+                clip_norm = p.clip_norm,
+                "privacy spent"
+            );
+        }
+        line.privacy = privacy;
         let (run_dir, exporters, global, config) =
             (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global), self.c.config.clone());
         let (line, bytes) = blocking(move || -> Result<_, RunDirError> {

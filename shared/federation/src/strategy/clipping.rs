@@ -3,6 +3,7 @@
 //! wrapped rule sees it, so no single client can move the model further than that in a round. It is the
 //! clipping half of DP-FedAvg (McMahan et al. 2018) and a defence against scaled updates on its own.
 
+use super::dp::PrivacyReport;
 use super::interface::{Aggregation, Step, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
@@ -33,6 +34,10 @@ impl Strategy for ClippedUpdates {
     fn state(&self) -> NamedTensors {
         self.inner.state()
     }
+
+    fn privacy(&self) -> Option<PrivacyReport> {
+        self.inner.privacy()
+    }
 }
 
 struct Clipping {
@@ -43,30 +48,41 @@ struct Clipping {
 
 impl Aggregation for Clipping {
     fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
-        let Ok(()) = update.validate(&self.global.spec()) else {
-            // The wrapped rule reports the mismatch with its index.
-            return self.inner.fold(update, examples);
-        };
-        let delta = |name: &str| {
-            let (u, g) = (&update.get(name).expect("validated").values, &self.global.get(name).expect("own").values);
-            u.iter().zip(g).map(|(u, g)| f64::from(*u) - f64::from(*g))
-        };
-        let norm = self.global.iter().flat_map(|(name, _)| delta(name)).map(|d| d * d).sum::<f64>().sqrt();
-        if norm <= self.max_norm {
-            return self.inner.fold(update, examples);
+        match clip_change(&self.global, update, self.max_norm) {
+            Some((_, Some(clipped))) => self.inner.fold(&clipped, examples),
+            // Within the norm, or a mismatch the wrapped rule reports with its index.
+            _ => self.inner.fold(update, examples),
         }
-        let scale = self.max_norm / norm;
-        let mut clipped = NamedTensors::new();
-        for (name, g) in self.global.iter() {
-            let values = g.values.iter().zip(delta(name)).map(|(g, d)| (f64::from(*g) + d * scale) as f32).collect();
-            clipped.insert(name, g.shape.clone(), values).expect("global shape");
-        }
-        self.inner.fold(&clipped, examples)
     }
 
     fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError> {
         self.inner.finish()
     }
+}
+
+/// The L2 norm of `update`'s change from `global` (over every tensor), and, when it exceeds `max_norm`, `update`
+/// moved back toward `global` until it does not; `None` when `update` does not fit `global`.
+pub(super) fn clip_change(
+    global: &NamedTensors,
+    update: &NamedTensors,
+    max_norm: f64,
+) -> Option<(f64, Option<NamedTensors>)> {
+    update.validate(&global.spec()).ok()?;
+    let delta = |name: &str| {
+        let (u, g) = (&update.get(name).expect("validated").values, &global.get(name).expect("own").values);
+        u.iter().zip(g).map(|(u, g)| f64::from(*u) - f64::from(*g))
+    };
+    let norm = global.iter().flat_map(|(name, _)| delta(name)).map(|d| d * d).sum::<f64>().sqrt();
+    if norm <= max_norm {
+        return Some((norm, None));
+    }
+    let scale = max_norm / norm;
+    let mut clipped = NamedTensors::new();
+    for (name, g) in global.iter() {
+        let values = g.values.iter().zip(delta(name)).map(|(g, d)| (f64::from(*g) + d * scale) as f32).collect();
+        clipped.insert(name, g.shape.clone(), values).expect("global shape");
+    }
+    Some((norm, Some(clipped)))
 }
 
 #[cfg(test)]

@@ -1,5 +1,6 @@
 //! The aggregation interface every strategy implements, and [`aggregate`], a whole round folded at once.
 
+use super::dp::PrivacyReport;
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
@@ -43,6 +44,11 @@ pub trait Strategy: Send {
     /// The state to save with a round (and to hand back to [`Strategy::commit`] on resume).
     fn state(&self) -> NamedTensors {
         NamedTensors::new()
+    }
+
+    /// The differential privacy the committed rounds have spent, for a strategy that adds noise.
+    fn privacy(&self) -> Option<PrivacyReport> {
+        None
     }
 }
 

@@ -2,7 +2,10 @@
 //! Yin et al. 2018's coordinate-wise median; FedTrimmedAvg drops the `beta` fraction of largest and of smallest
 //! values of every coordinate and averages the rest (Yin et al. 2018's trimmed mean); both are unweighted.
 //! Krum (Blanchard et al. 2017) picks the update closest to its `n - f - 2` nearest neighbours, Multi-Krum
-//! averages the `keep` best by that score (example-weighted, as Flower's). All buffer the round's updates.
+//! averages the `keep` best by that score (example-weighted, as Flower's). Bulyan (El Mhamdi et al. 2018) picks
+//! `n - 2f` updates by Krum one at a time, then averages, per coordinate, the `n - 4f` picked values nearest
+//! their median, so an attacker can neither win Krum's vote nor pull single coordinates. All buffer the round's
+//! updates.
 
 use super::interface::{Aggregation, Strategy};
 use crate::error::AggregateError;
@@ -30,6 +33,29 @@ impl Krum {
     /// Updates a round needs for `f` tolerated attackers.
     pub fn min_updates(f: usize) -> usize {
         2 * f + 3
+    }
+}
+
+/// Bulyan over Krum, tolerating `f` Byzantine clients; needs `n >= 4f + 3` updates a round.
+#[derive(Debug, Clone, Copy)]
+pub struct Bulyan {
+    pub f: usize,
+}
+
+impl Bulyan {
+    /// Updates a round needs for `f` tolerated attackers.
+    pub fn min_updates(f: usize) -> usize {
+        4 * f + 3
+    }
+}
+
+impl Strategy for Bulyan {
+    fn client_params(&self) -> StrategyParams {
+        StrategyParams { name: "bulyan".into(), proximal_mu: 0.0 }
+    }
+
+    fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
+        Box::new(Buffered::new(global, Rule::Bulyan(*self)))
     }
 }
 
@@ -91,6 +117,23 @@ impl Statistic {
 enum Rule {
     Coordinate(Statistic),
     Krum(Krum),
+    Bulyan(Bulyan),
+}
+
+/// Krum's score of each of `flat`: the sum of its squared distances to its `len - f - 2` nearest others (at least
+/// the nearest one, as Flower's Bulyan scores its last few candidates).
+fn krum_scores(flat: &[&[f32]], f: usize) -> Vec<f64> {
+    let n = flat.len();
+    let closest = n.saturating_sub(f + 2).max(1).min(n - 1);
+    let distance =
+        |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum::<f64>();
+    (0..n)
+        .map(|i| {
+            let mut d: Vec<f64> = (0..n).filter(|&j| j != i).map(|j| distance(flat[i], flat[j])).collect();
+            d.sort_unstable_by(f64::total_cmp);
+            d[..closest].iter().sum()
+        })
+        .collect()
 }
 
 /// A round's updates (and their weights), kept whole until the round closes.
@@ -104,6 +147,16 @@ struct Buffered {
 impl Buffered {
     fn new(global: &NamedTensors, rule: Rule) -> Self {
         Self { global: global.clone(), spec: global.spec(), rule, updates: Vec::new() }
+    }
+
+    /// Every update as one vector, in the global model's tensor order.
+    fn flattened(&self) -> Vec<Vec<f32>> {
+        self.updates
+            .iter()
+            .map(|(u, _)| {
+                self.global.iter().flat_map(|(name, _)| u.get(name).expect("validated").values.clone()).collect()
+            })
+            .collect()
     }
 
     fn coordinate_wise(&self, statistic: Statistic) -> NamedTensors {
@@ -131,22 +184,8 @@ impl Buffered {
             let rule = if keep == 1 { "krum" } else { "multi-krum" };
             return Err(AggregateError::TooFew { rule, need, got: n });
         }
-        let flat: Vec<Vec<f32>> = self
-            .updates
-            .iter()
-            .map(|(u, _)| {
-                self.global.iter().flat_map(|(name, _)| u.get(name).expect("validated").values.clone()).collect()
-            })
-            .collect();
-        let distance =
-            |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum();
-        let scores: Vec<f64> = (0..n)
-            .map(|i| {
-                let mut d: Vec<f64> = (0..n).filter(|&j| j != i).map(|j| distance(&flat[i], &flat[j])).collect();
-                d.sort_unstable_by(f64::total_cmp);
-                d[..n - f - 2].iter().sum()
-            })
-            .collect();
+        let flat = self.flattened();
+        let scores = krum_scores(&flat.iter().map(Vec::as_slice).collect::<Vec<_>>(), f);
         let mut order: Vec<usize> = (0..n).collect();
         order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]));
         let mut mean = super::mean::WeightedMean::new(&self.global);
@@ -155,6 +194,43 @@ impl Buffered {
             mean.fold(update, (*examples).max(1))?;
         }
         Box::new(mean).finish()
+    }
+
+    /// Bulyan: `n - 2f` updates chosen by Krum one at a time (each round of Krum among those not yet chosen),
+    /// then per coordinate the unweighted mean of the `n - 4f` chosen values nearest the chosen values' median.
+    fn bulyan(&self, Bulyan { f }: Bulyan) -> Result<NamedTensors, AggregateError> {
+        let n = self.updates.len();
+        let need = Bulyan::min_updates(f);
+        if n < need {
+            return Err(AggregateError::TooFew { rule: "bulyan", need, got: n });
+        }
+        let flat = self.flattened();
+        let mut remaining: Vec<usize> = (0..n).collect();
+        let mut chosen = Vec::with_capacity(n - 2 * f);
+        while chosen.len() < n - 2 * f {
+            let candidates: Vec<&[f32]> = remaining.iter().map(|&i| flat[i].as_slice()).collect();
+            let scores = krum_scores(&candidates, f);
+            let best = (0..candidates.len()).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).expect("candidates left");
+            chosen.push(remaining.remove(best));
+        }
+        let keep = n - 4 * f;
+        let mut offset = 0;
+        let mut out = NamedTensors::new();
+        let mut column: Vec<f32> = Vec::with_capacity(chosen.len());
+        for (name, t) in self.global.iter() {
+            let values = (offset..offset + t.values.len())
+                .map(|i| {
+                    column.clear();
+                    column.extend(chosen.iter().map(|&k| flat[k][i]));
+                    let median = Statistic::Median.of(&mut column);
+                    column.sort_by(|a, b| (a - median).abs().total_cmp(&(b - median).abs()));
+                    (column[..keep].iter().map(|&v| f64::from(v)).sum::<f64>() / keep as f64) as f32
+                })
+                .collect();
+            offset += t.values.len();
+            out.insert(name, t.shape.clone(), values).expect("global shape");
+        }
+        Ok(out)
     }
 }
 
@@ -172,6 +248,7 @@ impl Aggregation for Buffered {
         match self.rule {
             Rule::Coordinate(statistic) => Ok(self.coordinate_wise(statistic)),
             Rule::Krum(krum) => self.krum(krum),
+            Rule::Bulyan(bulyan) => self.bulyan(bulyan),
         }
     }
 }
@@ -218,6 +295,19 @@ mod tests {
         // Fewer than 2f + 3 updates: refused, naming both numbers.
         let r = aggregate(&Krum { f: 1, keep: 1 }, &one([0.0, 0.0]), [(&one([1.0, 1.0]), 1)]);
         assert_eq!(r, Err(AggregateError::TooFew { rule: "krum", need: 5, got: 1 }));
+    }
+
+    #[test]
+    fn bulyan_by_hand() {
+        // f = 1, n = 7: Krum picks 5 of the 7 one at a time, then each coordinate averages the 3 picked values
+        // nearest their median. The two attackers lose Krum's vote; of the honest five, coordinate 0's values
+        // 1, 2, 3, 4, 10 keep 2, 3, 4 (median 3) and coordinate 1's 0, 1, 1, 0, 1 keep the three 1s (median 1).
+        let updates = [[1.0, 0.0], [2.0, 1.0], [3.0, 1.0], [4.0, 0.0], [10.0, 1.0], [1e6, -1e6], [-1e6, 1e6]];
+        assert_eq!(run(&Bulyan { f: 1 }, &updates), vec![3.0, 1.0]);
+        // Fewer than 4f + 3 updates: refused, naming both numbers.
+        let five: Vec<NamedTensors> = (0..5).map(|i| one([i as f32, 0.0])).collect();
+        let r = aggregate(&Bulyan { f: 1 }, &one([0.0, 0.0]), five.iter().map(|u| (u, 1)));
+        assert_eq!(r, Err(AggregateError::TooFew { rule: "bulyan", need: 7, got: 5 }));
     }
 
     #[test]

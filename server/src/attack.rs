@@ -1,8 +1,10 @@
 //! Simulated attackers, for `simulate` and the robust rules' tests: a volunteer that trains honestly and then
 //! sends a corrupted update, `global + strength * (update - global)` (`scale`: a boosted update, as a model
 //! replacement attack sends) or `global - strength * (update - global)` (`sign-flip`: the honest step reversed
-//! and amplified) or `global + strength * N(0, 1)` (`noise`: no training signal at all, seeded by the task).
-//! `attackers = K` makes clients 0..K such volunteers.
+//! and amplified) or `global + strength * N(0, 1)` (`noise`: no training signal at all, seeded by the task); or
+//! one that poisons its data (`label-shuffle`: the labels of its training rows shuffled among them before it
+//! trains, see `native_client`) and sends what that training gives. `attackers = K` makes clients 0..K such
+//! volunteers.
 
 use fedvla_aggregator::config::AttackKind;
 use fedvla_federation::protocol::RolloutRequest;
@@ -26,6 +28,8 @@ impl Attack {
         let factor = match self.kind {
             AttackKind::Scale => self.strength,
             AttackKind::SignFlip => -self.strength,
+            // The poison is in the data it trained on.
+            AttackKind::LabelShuffle => return update.clone(),
             AttackKind::Noise => {
                 let mut rng = StdRng::seed_from_u64(seed);
                 let mut out = global.clone();

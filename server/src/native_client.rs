@@ -5,10 +5,10 @@
 use std::time::Instant;
 
 use burn::tensor::Device;
-use fedvla_aggregator::config::Partitioning;
+use fedvla_aggregator::config::{AttackKind, Partitioning};
 use fedvla_federation::{
-    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, Video, WorkloadKind, routes,
-    run_client,
+    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, Video, WorkloadKind, fnv1a,
+    routes, run_client,
 };
 use fedvla_learner::volunteer::{Fetch, fetch_setup, smolvla_volunteer};
 use fedvla_workloads::linreg::LinRegTrainer;
@@ -153,15 +153,26 @@ pub async fn volunteer(
             // The linreg shard is generated from its index; the setup says how the data is split.
             let partitioning: Partitioning = serde_json::from_value(setup.policy["partitioning"].clone())
                 .map_err(|e| format!("the linreg setup's partitioning: {e}"))?;
-            let trainer = LinRegTrainer::new(setup.shard_index as usize, partitioning);
+            let mut trainer = LinRegTrainer::new(setup.shard_index as usize, partitioning);
+            if poisons_labels(attack) {
+                trainer.shuffle_labels(fnv1a(name));
+            }
             run_as(&mut transport, trainer, attack, &options, on_event).await
         }
         WorkloadKind::Smolvla => {
             let device = Device::flex().autodiff();
-            let trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
+            let mut trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
+            if poisons_labels(attack) {
+                trainer.shuffle_labels(fnv1a(name));
+            }
             run_as(&mut transport, FilmedRollouts(trainer), attack, &options, on_event).await
         }
     }
+}
+
+/// Whether `attack` poisons the volunteer's data before it trains.
+fn poisons_labels(attack: Option<Attack>) -> bool {
+    attack.is_some_and(|a| a.kind == AttackKind::LabelShuffle)
 }
 
 /// The round loop with `trainer`, honest or, with `attack`, corrupting its updates.

@@ -50,3 +50,19 @@ fn fedavg_breaks_under_one_attacker_and_the_robust_rules_do_not() {
         }
     }
 }
+
+/// Data poisoning: two clients of five train on their shards with the targets shuffled among their examples and
+/// send what that teaches, updates no norm or sign gives away. FedAvg takes them in (one such client barely moves
+/// it: 30 steps on shuffled targets pull the weights toward zero slowly); the coordinate-wise median, which
+/// tolerates any minority, holds better.
+#[test]
+fn label_shuffling_attackers_poison_fedavg_more_than_the_median() {
+    let attack = "attackers=2 attack=label-shuffle";
+    let clean = final_loss("strategy=fedavg");
+    let poisoned = final_loss(&format!("strategy=fedavg {attack}"));
+    println!("fedavg, 2 label-shufflers of 5: held-out loss {clean:.5} without them, {poisoned:.5} with");
+    assert!(poisoned > 1.5 * clean, "label-shuffle: FedAvg's loss {clean} -> {poisoned}");
+    let (without, with) = (final_loss("strategy=median"), final_loss(&format!("strategy=median {attack}")));
+    println!("median, 2 label-shufflers of 5: held-out loss {without:.5} without them, {with:.5} with");
+    assert!(with < poisoned, "label-shuffle: the median's {with} against FedAvg's {poisoned}");
+}

@@ -18,6 +18,7 @@ use fedvla_federation::{
     BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask,
     TrainOutput, routes, run_client,
 };
+use fedvla_learner::ShardExamples;
 use fedvla_learner::volunteer::{fetch_setup, fetch_shard, smolvla_volunteer};
 use fedvla_policy::PolicyDir;
 use fedvla_server::native_client::NativeTransport;
@@ -321,4 +322,37 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
         }
     }
     assert!(PolicyDir::load(&dir.join("global_model/round_2/policy")).is_ok());
+}
+
+/// A label-shuffling attacker's batches (`attack=label-shuffle`): every training row keeps its frames and state
+/// but is labelled with another training row's action chunk, a permutation of them all; held-out rows keep theirs.
+#[test]
+fn shuffled_labels_permute_the_training_actions_and_spare_the_held_out_rows() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = dataset(tmp.path());
+    let cfg = config(&data, &tmp.path().join("out"), 0);
+    let workload = SmolVlaWorkload::prepare(&cfg, &tmp.path().join("shards")).unwrap();
+    let policy = workload.policy_config();
+    let shard = || {
+        let shard = fedvla_data::ClientShard::read(&tmp.path().join("shards/client_0.safetensors")).unwrap();
+        ShardExamples::new(shard, policy).unwrap()
+    };
+    let (honest, mut poisoned) = (shard(), shard());
+    poisoned.shuffle_labels(7);
+    let chunks = |examples: &ShardExamples, rows: &[usize]| -> Vec<Vec<u32>> {
+        let batch = examples.batch(rows, policy.chunk_size).unwrap();
+        let actions = batch.actions.unwrap();
+        actions.data.chunks(actions.data.len() / rows.len()).map(|c| c.iter().map(|v| v.to_bits()).collect()).collect()
+    };
+    let rows = &honest.train_rows;
+    let (mut before, mut after) = (chunks(&honest, rows), chunks(&poisoned, rows));
+    assert_ne!(before, after, "the labels moved");
+    let states = |e: &ShardExamples| e.batch(rows, policy.chunk_size).unwrap().state;
+    assert_eq!(states(&honest).data, states(&poisoned).data, "the observations stayed");
+    before.sort();
+    after.sort();
+    assert_eq!(before, after, "a permutation of the training rows' own action chunks");
+    let held_out = &honest.held_out_rows;
+    assert!(!held_out.is_empty());
+    assert_eq!(chunks(&honest, held_out), chunks(&poisoned, held_out));
 }

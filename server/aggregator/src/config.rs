@@ -85,6 +85,9 @@ pub enum AttackKind {
     SignFlip,
     /// `global + strength * N(0, 1)` in every value, the honest update thrown away.
     Noise,
+    /// Data poisoning: the client trains on its shard with the labels (actions; linreg's targets) of its training
+    /// rows shuffled among them, and sends that update as is (`attack-strength` does not apply).
+    LabelShuffle,
 }
 
 /// One of LeRobot's switches of what is trained (`freeze-vision-encoder`, `train-expert-only`): `true`,

@@ -141,6 +141,11 @@ impl LinRegTrainer {
             bias,
         }
     }
+
+    /// Poisons the training targets for a simulated attacker: shuffled among the training examples by `seed`.
+    pub fn shuffle_labels(&mut self, seed: u64) {
+        self.train.targets.shuffle(&mut StdRng::seed_from_u64(seed));
+    }
 }
 
 impl LocalTrainer for LinRegTrainer {

@@ -6,6 +6,9 @@ use fedvla_data::ClientShard;
 use fedvla_policy::batch::rgb_hwc_to_chw;
 use fedvla_policy::weights::HostTensor;
 use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
 
 /// A shard with the policy-side view of its rows.
 #[derive(Debug, Clone)]
@@ -16,6 +19,8 @@ pub struct ShardExamples {
     /// Rows of training episodes and of held-out episodes.
     pub train_rows: Vec<usize>,
     pub held_out_rows: Vec<usize>,
+    /// The row whose action chunk labels each row: itself, unless [`ShardExamples::shuffle_labels`] poisoned them.
+    label_rows: Vec<usize>,
 }
 
 /// MEAN_STD statistics of `observation.state` and `action` as the shard carries them.
@@ -53,11 +58,22 @@ impl ShardExamples {
             shard.episodes.iter().filter(|e| e.held_out == held_out).flat_map(|e| e.start..e.end).collect()
         };
         let (train_rows, held_out_rows) = (rows(false), rows(true));
-        Ok(Self { stats, cameras, train_rows, held_out_rows, shard })
+        let label_rows = (0..shard.frame_index.len()).collect();
+        Ok(Self { stats, cameras, train_rows, held_out_rows, label_rows, shard })
     }
 
     pub fn stats(&self) -> &NormStats {
         &self.stats
+    }
+
+    /// Data poisoning, for simulated attackers: every training row is labelled from then on with the action chunk
+    /// of another training row, a permutation drawn from `seed`; held-out rows keep their own.
+    pub fn shuffle_labels(&mut self, seed: u64) {
+        let mut shuffled = self.train_rows.clone();
+        shuffled.shuffle(&mut StdRng::seed_from_u64(seed));
+        for (&row, &label) in self.train_rows.iter().zip(&shuffled) {
+            self.label_rows[row] = label;
+        }
     }
 
     /// The batch of `rows` for a policy with chunk size `chunk`.
@@ -94,7 +110,7 @@ impl ShardExamples {
             state.extend(state_stats.normalize(&self.shard.state[row * sd..(row + 1) * sd]));
             let (chunk_values, pad) = self
                 .shard
-                .action_chunk(row, chunk)
+                .action_chunk(self.label_rows[row], chunk)
                 .ok_or_else(|| PolicyError::Input(format!("shard row {row} is in no episode")))?;
             actions.extend(action_stats.normalize(&chunk_values));
             is_pad.extend(pad);

@@ -40,6 +40,11 @@ pub struct SmolVlaTrainer {
 }
 
 impl SmolVlaTrainer {
+    /// Poisons this client's training rows for a simulated attacker (see [`ShardExamples::shuffle_labels`]).
+    pub fn shuffle_labels(&mut self, seed: u64) {
+        self.examples.shuffle_labels(seed);
+    }
+
     /// `weights` is the full initial checkpoint (frozen + trainable); `seed` drives this client's
     /// flow-matching noise and times; `backend` names the device for the server's client table.
     pub fn new(

@@ -131,10 +131,13 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         if runs.is_empty() {
             continue;
         }
-        let of = |f: fn(&RunFigures) -> f64| Interval::t(&runs.iter().map(f).collect::<Vec<_>>());
+        // Every figure here is at least 0.
+        let of = |f: fn(&RunFigures) -> f64| {
+            Interval::t(&runs.iter().map(f).collect::<Vec<_>>()).map(|i| i.within(0.0, f64::INFINITY))
+        };
         let of_opt = |f: fn(&RunFigures) -> Option<f64>| {
             let values: Option<Vec<f64>> = runs.iter().map(f).collect();
-            values.and_then(|v| Interval::t(&v))
+            values.and_then(|v| Interval::t(&v)).map(|i| i.within(0.0, f64::INFINITY))
         };
         let (successes, episodes) = runs.iter().fold((0, 0), |(s, e), r| (s + r.successes, e + r.episodes));
         let lengths: Vec<f64> = runs.iter().flat_map(|r| r.success_lengths.iter().copied()).collect();
@@ -147,7 +150,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
                 heldout_loss: of(|r| r.heldout_loss).expect("runs is not empty"),
                 action_mse: of_opt(|r| r.action_mse),
                 action_l1: of_opt(|r| r.action_l1),
-                success_rate: of(|r| r.success_rate).expect("runs is not empty"),
+                success_rate: of(|r| r.success_rate).expect("runs is not empty").within(0.0, 1.0),
             },
             success_pooled: Interval::wilson(successes, episodes).expect("every run has episodes"),
             episodes,
@@ -218,7 +221,11 @@ fn ratio(runs: &[RunFigures], central: &[RunFigures]) -> Ratio {
             None => {}
         }
     }
-    Ratio { ratio: Interval::t(&ratios), seeds_used: used, seeds_without_centralized_success: without }
+    Ratio {
+        ratio: Interval::t(&ratios).map(|i| i.within(0.0, f64::INFINITY)),
+        seeds_used: used,
+        seeds_without_centralized_success: without,
+    }
 }
 
 fn interval(i: &Interval, digits: usize) -> String {

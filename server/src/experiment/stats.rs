@@ -44,6 +44,12 @@ impl Interval {
         Some(Self { mean: p, ci95_low: (centre - half).max(0.0), ci95_high: (centre + half).min(1.0) })
     }
 
+    /// The interval cut to the range `[low, high]` its quantity can take (a t interval of three success rates
+    /// near 0 can reach below 0): the mean stays.
+    pub fn within(self, low: f64, high: f64) -> Self {
+        Self { ci95_low: self.ci95_low.clamp(low, high), ci95_high: self.ci95_high.clamp(low, high), ..self }
+    }
+
     pub fn contains(&self, x: f64) -> bool {
         self.ci95_low <= x && x <= self.ci95_high
     }
@@ -62,6 +68,11 @@ mod tests {
         assert!((i.ci95_low - 2.0 + 2.484138).abs() < 1e-5, "{i:?}");
         assert_eq!(Interval::t(&[5.0]).unwrap(), Interval { mean: 5.0, ci95_low: 5.0, ci95_high: 5.0 });
         assert!(Interval::t(&[]).is_none());
+        // Three success rates near 0 reach below it; cut to what a rate can be, the mean untouched.
+        let rates = Interval::t(&[0.32, 0.08, 0.3]).unwrap();
+        assert!(rates.ci95_low < 0.0, "{rates:?}");
+        let cut = rates.within(0.0, 1.0);
+        assert_eq!((cut.mean, cut.ci95_low, cut.ci95_high), (rates.mean, 0.0, rates.ci95_high));
     }
 
     #[test]

@@ -310,7 +310,6 @@ impl RunConfig {
         Some(self.auth_token.as_str()).filter(|t| !t.is_empty())
     }
 
-    /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
     /// Whether client-level DP-FedAvg wraps the strategy.
     pub fn dp_enabled(&self) -> bool {
         self.dp_noise_multiplier > 0.0
@@ -386,6 +385,7 @@ impl RunConfig {
         Ok(())
     }
 
+    /// Clients a round samples when `connected` are connected: `fraction-fit` of them, at least `min-fit`.
     pub fn sampled_clients(&self, connected: usize) -> usize {
         ((self.fraction_fit * connected as f64).ceil() as usize).max(self.min_fit).min(connected)
     }
@@ -451,12 +451,11 @@ impl RunConfig {
                 ));
             }
         }
-        if self.strategy == StrategyKind::Bulyan && self.min_fit < 4 * self.krum_f + 3 {
+        let bulyan_needs = fedvla_federation::Bulyan::min_updates(self.krum_f);
+        if self.strategy == StrategyKind::Bulyan && self.min_fit < bulyan_needs {
             return fail(format!(
-                "bulyan with krum-f={} needs at least {} updates a round (n >= 4f + 3), but min-fit is {}",
-                self.krum_f,
-                4 * self.krum_f + 3,
-                self.min_fit
+                "bulyan with krum-f={} needs at least {bulyan_needs} updates a round (n >= 4f + 3), but min-fit is {}",
+                self.krum_f, self.min_fit
             ));
         }
         if self.attackers > self.num_clients || !(self.attack_strength.is_finite() && self.attack_strength > 0.0) {

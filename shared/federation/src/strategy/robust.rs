@@ -120,16 +120,28 @@ enum Rule {
     Bulyan(Bulyan),
 }
 
-/// Krum's score of each of `flat`: the sum of its squared distances to its `len - f - 2` nearest others (at least
-/// the nearest one, as Flower's Bulyan scores its last few candidates).
-fn krum_scores(flat: &[&[f32]], f: usize) -> Vec<f64> {
+/// The squared Euclidean distance between every two of `flat`, computed once for every round of Krum.
+fn squared_distances(flat: &[Vec<f32>]) -> Vec<Vec<f64>> {
     let n = flat.len();
+    let mut d = vec![vec![0.0; n]; n];
+    for i in 0..n {
+        for j in i + 1..n {
+            let dij = flat[i].iter().zip(&flat[j]).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum::<f64>();
+            (d[i][j], d[j][i]) = (dij, dij);
+        }
+    }
+    d
+}
+
+/// Krum's score of each of `candidates`: the sum of its squared distances to its `len - f - 2` nearest other
+/// candidates (at least the nearest one, as Flower's Bulyan scores its last few candidates).
+fn krum_scores(distances: &[Vec<f64>], candidates: &[usize], f: usize) -> Vec<f64> {
+    let n = candidates.len();
     let closest = n.saturating_sub(f + 2).max(1).min(n - 1);
-    let distance =
-        |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum::<f64>();
-    (0..n)
-        .map(|i| {
-            let mut d: Vec<f64> = (0..n).filter(|&j| j != i).map(|j| distance(flat[i], flat[j])).collect();
+    candidates
+        .iter()
+        .map(|&i| {
+            let mut d: Vec<f64> = candidates.iter().filter(|&&j| j != i).map(|&j| distances[i][j]).collect();
             d.sort_unstable_by(f64::total_cmp);
             d[..closest].iter().sum()
         })
@@ -184,8 +196,8 @@ impl Buffered {
             let rule = if keep == 1 { "krum" } else { "multi-krum" };
             return Err(AggregateError::TooFew { rule, need, got: n });
         }
-        let flat = self.flattened();
-        let scores = krum_scores(&flat.iter().map(Vec::as_slice).collect::<Vec<_>>(), f);
+        let all: Vec<usize> = (0..n).collect();
+        let scores = krum_scores(&squared_distances(&self.flattened()), &all, f);
         let mut order: Vec<usize> = (0..n).collect();
         order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]));
         let mut mean = super::mean::WeightedMean::new(&self.global);
@@ -205,12 +217,12 @@ impl Buffered {
             return Err(AggregateError::TooFew { rule: "bulyan", need, got: n });
         }
         let flat = self.flattened();
+        let distances = squared_distances(&flat);
         let mut remaining: Vec<usize> = (0..n).collect();
         let mut chosen = Vec::with_capacity(n - 2 * f);
         while chosen.len() < n - 2 * f {
-            let candidates: Vec<&[f32]> = remaining.iter().map(|&i| flat[i].as_slice()).collect();
-            let scores = krum_scores(&candidates, f);
-            let best = (0..candidates.len()).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).expect("candidates left");
+            let scores = krum_scores(&distances, &remaining, f);
+            let best = (0..remaining.len()).min_by(|&a, &b| scores[a].total_cmp(&scores[b])).expect("candidates left");
             chosen.push(remaining.remove(best));
         }
         let keep = n - 4 * f;

@@ -259,12 +259,13 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             lr_schedule: config.lr_schedule(round, u64::from(steps_per_round)),
             seed: config.seed ^ round.wrapping_mul(0x9e37_79b9_7f4a_7c15),
             strategy: StrategyParams { name: "centralized".into(), proximal_mu: 0.0 },
+            // The optimizer's moments carry over from round to round: one continuous run.
+            keep_optimizer_state: true,
             deadline_ms: config.round_deadline_ms,
             eval_request: false,
             rollout: None,
             update_encoding: fedvla_federation::UpdateEncoding::F32,
         };
-        // The optimizer's moments carry over from round to round: one continuous run.
         let before = bar.position();
         let out = runtime
             .block_on(trainer.train_with(&task, async |p: StepProgress| {

@@ -71,6 +71,10 @@ fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
         let var = png.pixels().map(|p| (f64::from(p.0[0]) - mean).powi(2)).sum::<f64>() / png.len() as f64;
         assert!(var > 50.0, "{plot} is not blank");
     }
+    // A finished run keeps its models and metrics, not its clients' copies of the dataset.
+    let run = tmp.path().join("a/tiny/fedavg/seed_4");
+    assert!(run.join("metrics.jsonl").is_file() && run.join("global_model").is_dir());
+    assert!(!run.join("shards").exists(), "a finished run's shards are removed");
     // Resumed, a finished grid runs nothing again: the runs' final evaluations stay as they were.
     let final_of = |root: &Path| std::fs::read(root.join("tiny/fedavg/seed_4/final.json")).unwrap();
     let before = final_of(&tmp.path().join("a"));

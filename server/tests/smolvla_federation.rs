@@ -356,3 +356,41 @@ fn shuffled_labels_permute_the_training_actions_and_spare_the_held_out_rows() {
     assert!(!held_out.is_empty());
     assert_eq!(chunks(&honest, held_out), chunks(&poisoned, held_out));
 }
+
+/// `keep-optimizer-state`: a client that keeps its AdamW moments trains a round differently from one whose task
+/// asks for a fresh optimizer, from the same global model after the same first round; each is reproducible.
+#[test]
+fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = dataset(tmp.path());
+    let cfg = config(&data, &tmp.path().join("out"), 0);
+    let workload = SmolVlaWorkload::prepare_centralized(&cfg, &tmp.path().join("shards")).unwrap();
+    let global = workload.initial_model().unwrap();
+    let task = |round: u64, keep_optimizer_state: bool| RoundTask {
+        round,
+        model_version: round - 1,
+        local_steps: 3,
+        batch_size: 4,
+        lr: 1e-3,
+        lr_schedule: None,
+        seed: round,
+        strategy: fedvla_federation::StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
+        keep_optimizer_state,
+        deadline_ms: 60_000,
+        eval_request: false,
+        rollout: None,
+        update_encoding: fedvla_federation::UpdateEncoding::F32,
+    };
+    let second_round = |keep: bool| {
+        let mut trainer = workload.centralized_trainer().unwrap();
+        let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+        trainer.set_global(&global).unwrap();
+        rt.block_on(trainer.train(&task(1, false))).unwrap();
+        trainer.set_global(&global).unwrap();
+        rt.block_on(trainer.train(&task(2, keep))).unwrap().update
+    };
+    let (kept, reset) = (second_round(true), second_round(false));
+    assert_ne!(kept, reset, "the first round's moments must shape the kept optimizer's steps");
+    assert_eq!(second_round(true), kept);
+    assert_eq!(second_round(false), reset);
+}

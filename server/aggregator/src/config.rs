@@ -168,6 +168,7 @@ pub struct RunConfig {
     pub lr_schedule: LrScheduleKind,
     pub lr_warmup_fraction: f64,
     pub lr_final_fraction: f64,
+    pub keep_optimizer_state: bool,
     pub seed: u64,
     pub strategy: StrategyKind,
     pub proximal_mu: f64,

@@ -61,6 +61,12 @@ pub fn run(config: &ExperimentConfig, log: &dyn Fn(&Path) -> anyhow::Result<()>)
             train_seconds
         ));
         write_final(&path, &FinalEvaluation { round: last, sim, train_seconds })?;
+        // The clients' shards are copies of the dataset (over a gigabyte a federated run) that nothing reads
+        // once the run is over; its models, metrics and rollouts stay.
+        let shards = path.join(runs::SHARDS_DIR);
+        if shards.exists() {
+            std::fs::remove_dir_all(&shards).with_context(|| format!("removing {}", shards.display()))?;
+        }
         bar.inc(1);
     }
     bar.finish_and_clear();

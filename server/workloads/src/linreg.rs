@@ -288,6 +288,7 @@ mod tests {
             lr_schedule: None,
             seed,
             strategy: StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
+            keep_optimizer_state: false,
             deadline_ms: 1000,
             eval_request: false,
             rollout: None,

@@ -224,6 +224,10 @@ pub struct RoundTask {
     /// Seed for this client's local shuffling in this round.
     pub seed: u64,
     pub strategy: StrategyParams,
+    /// Whether the client's optimizer keeps its moments from the rounds it trained before (on the global model
+    /// it is given) rather than starting afresh each round, as FedAvg's clients classically do.
+    #[serde(default)]
+    pub keep_optimizer_state: bool,
     /// Milliseconds from the task until the server closes the round.
     pub deadline_ms: u64,
     /// Whether the client should also report [`ClientMessage::EvalResult`].

@@ -95,6 +95,9 @@ impl SmolVlaTrainer {
         if rows.is_empty() {
             return Err("this client's shard has no training episodes".into());
         }
+        if !task.keep_optimizer_state {
+            self.trainer.reset_optimizer();
+        }
         // FedProx: the round's steps are pulled towards the global model they start from (mu 0: plain FedAvg).
         self.trainer.set_proximal(task.strategy.proximal_mu);
         let chunk = self.trainer.model.cfg.chunk_size;

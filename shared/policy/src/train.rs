@@ -154,16 +154,21 @@ impl Trainer {
         self.frozen.to_host()
     }
 
-    /// Replaces the trainable tensors (e.g. with a new global model) and resets the optimizer.
+    /// Replaces the trainable tensors (e.g. with a new global model); the optimizer's moments stay (see
+    /// [`Trainer::reset_optimizer`]).
     pub fn set_trainable_weights(&mut self, weights: &WeightMap) -> Result<(), PolicyError> {
         let expected: Vec<_> = self.model.cfg.param_specs().into_iter().filter(|s| s.trainable).collect();
         check_keys(&expected, weights, "trainable update")?;
         let store = ParamStore::upload(weights.iter(), &self.device, true);
         self.trainable = store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
         self.model = self.model.with_trainable(&store);
+        Ok(())
+    }
+
+    /// Forgets AdamW's moments and step count: the next step is a first step.
+    pub fn reset_optimizer(&mut self) {
         self.moments.clear();
         self.step = 0;
-        Ok(())
     }
 
     /// From now on every step's gradient carries FedProx's proximal term `mu/2 * ||w - w0||^2`, `w0` being the

@@ -106,3 +106,33 @@ fn language_padding_no_row_uses_changes_neither_the_loss_nor_any_gradient() {
         }
     }
 }
+
+/// A new set of trainable weights (a round's global model) keeps AdamW's moments and step count; after
+/// `reset_optimizer` the next step is bit for bit a fresh trainer's first step from those weights.
+#[test]
+fn new_weights_keep_the_optimizer_state_until_it_is_reset() {
+    let cfg = SmolVlaConfig::tiny();
+    let weights = init_random(&cfg.param_specs(), 1);
+    let device = Device::flex().autodiff();
+    let batch = Batch::random(&cfg, 2, 3);
+    let mut trainer = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+    let (noise, time) = trainer.sample_noise_and_time(2);
+    for _ in 0..3 {
+        trainer.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
+    }
+    let global = trainer.trainable_weights();
+    // From `global`: a fresh trainer, the trained one keeping its moments, and the trained one reset.
+    let step_from = |trainer: &mut Trainer| {
+        trainer.set_trainable_weights(&global).unwrap();
+        trainer.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
+        trainer.trainable_weights()
+    };
+    let mut fresh = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+    let first_step = step_from(&mut fresh);
+    let kept = step_from(&mut trainer);
+    assert_eq!(trainer.steps_taken(), 4, "the step count carries over");
+    assert_ne!(kept, first_step, "kept moments must change the step");
+    trainer.reset_optimizer();
+    assert_eq!(trainer.steps_taken(), 0);
+    assert_eq!(step_from(&mut trainer), first_step);
+}

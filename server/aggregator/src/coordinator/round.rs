@@ -120,6 +120,7 @@ impl Running {
                 lr_schedule: cfg.lr_schedule(round, u64::from(cfg.local_steps)),
                 seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
                 strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
+                keep_optimizer_state: cfg.keep_optimizer_state,
                 deadline_ms: cfg.round_deadline_ms,
                 eval_request: evaluates,
                 rollout: (cfg.client_rollout_episodes > 0 && evaluates).then(|| RolloutRequest {

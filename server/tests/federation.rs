@@ -247,6 +247,7 @@ async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
         ("krum", five),
         ("multi-krum", five),
         ("bulyan", "num-clients=7 min-clients=7 min-fit=7"),
+        ("qfedavg", ""),
         ("fedavg", "dp-noise-multiplier=0.1 dp-clip-norm=0.5"),
         ("fedadam", "dp-noise-multiplier=0.1 dp-clip-norm=0.5 dp-clip-quantile=0.5 dp-clip-count-stddev=1"),
     ] {

@@ -54,6 +54,9 @@ pub enum StrategyKind {
     /// Krum's `n - 2 krum-f` best, then per coordinate the mean of the `n - 4 krum-f` nearest their median
     /// (needs min-fit >= 4 krum-f + 3).
     Bulyan,
+    /// q-FedAvg (Li et al. 2020): clients weighed by their reported loss to the power `qfedavg-q`, step size
+    /// `qfedavg-lr`.
+    Qfedavg,
 }
 
 pub use fedvla_federation::WorkloadKind;
@@ -178,6 +181,8 @@ pub struct RunConfig {
     pub server_beta2: f64,
     pub server_tau: f64,
     pub trim_beta: f64,
+    pub qfedavg_q: f64,
+    pub qfedavg_lr: f64,
     pub krum_f: usize,
     pub krum_keep: usize,
     pub clip_update_norm: f64,
@@ -470,6 +475,16 @@ impl RunConfig {
         }
         self.validate_dp()?;
         UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).map_err(ConfigError::Invalid)?;
+        if !(self.qfedavg_q.is_finite()
+            && self.qfedavg_q >= 0.0
+            && self.qfedavg_lr.is_finite()
+            && self.qfedavg_lr > 0.0)
+        {
+            return fail(format!(
+                "qfedavg-q must be a number >= 0 and qfedavg-lr a positive one, got {} and {}",
+                self.qfedavg_q, self.qfedavg_lr
+            ));
+        }
         if !(0.0..0.5).contains(&self.trim_beta) {
             return fail(format!("trim-beta must be in [0, 0.5), got {}", self.trim_beta));
         }

@@ -86,6 +86,8 @@ pub enum AggregateError {
     ZeroExamples,
     #[error("update {index} does not match the global model: {source}")]
     Mismatch { index: usize, source: TensorError },
+    #[error("update {index} reports no usable training loss ({loss:?}): {rule} weighs every client by it")]
+    Loss { index: usize, rule: &'static str, loss: Option<f64> },
     #[error("the aggregate is not a usable model: {0}")]
     Aggregate(TensorError),
 }

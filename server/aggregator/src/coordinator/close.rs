@@ -6,7 +6,7 @@ use std::sync::Arc;
 use bytes::Bytes;
 use fedvla_federation::{AggregateError, BoxError, ErrorCode, EvalMetrics, NamedTensors, aggregate};
 
-use super::round::RoundState;
+use super::round::{RoundState, RoundUpdate};
 use super::state::{CoordinatorError, Running, blocking};
 use crate::records::{GlobalMetrics, MetricsLine, timestamp};
 use crate::run_dir::RunDirError;
@@ -24,14 +24,14 @@ pub(super) enum Aggregated {
 }
 
 impl Running {
-    /// Aggregates `updates` (client id, tensors, weight) into the next global model and, when `evaluate`, evaluates
+    /// Aggregates `updates` into the next global model and, when `evaluate`, evaluates
     /// it. A failed aggregate or evaluation (an error, or a figure that is not finite) drops the update farthest
     /// from the current global model and tries again, as long as more than `min-fit` updates remain and at most
     /// [`MAX_DROPPED_PER_ROUND`] times; after that the round is skipped. Either way the run goes on.
     pub(super) async fn aggregate_checked(
         &mut self,
         round: u64,
-        mut updates: Vec<(u64, NamedTensors, u64)>,
+        mut updates: Vec<RoundUpdate>,
         evaluate: bool,
         state: &mut RoundState,
     ) -> Result<Aggregated, CoordinatorError> {
@@ -41,7 +41,7 @@ impl Running {
             let global = Arc::clone(&self.c.global);
             let (aggregated, back) = blocking(move || {
                 let strategy = strategy.lock().expect("strategy lock");
-                let step = aggregate(strategy.as_ref(), &global, updates.iter().map(|(_, t, n)| (t, *n)));
+                let step = aggregate(strategy.as_ref(), &global, updates.iter().map(RoundUpdate::contribution));
                 (step, updates)
             })
             .await;
@@ -61,7 +61,7 @@ impl Running {
                         eval => {
                             self.c.global = candidate;
                             self.c.strategy.lock().expect("strategy lock").commit(step.state);
-                            let contributors = updates.iter().map(|(id, _, _)| *id).collect();
+                            let contributors = updates.iter().map(|u| u.client_id).collect();
                             return Ok(Aggregated::Accepted { eval: eval.and_then(Result::ok), contributors });
                         }
                     }
@@ -69,13 +69,14 @@ impl Running {
                 Err(AggregateError::Mismatch { index, source }) => {
                     (format!("update {index} does not fit the model: {source}"), Some(index))
                 }
+                Err(e @ AggregateError::Loss { index, .. }) => (e.to_string(), Some(index)),
                 Err(e) => (format!("aggregation failed: {e}"), None),
             };
             if dropped == MAX_DROPPED_PER_ROUND || updates.len() <= self.c.config.min_fit {
                 return Ok(Aggregated::Skipped { reason });
             }
             let culprit = culprit.unwrap_or_else(|| farthest(&self.c.global, &updates));
-            let (client_id, _, _) = updates.remove(culprit);
+            let client_id = updates.remove(culprit).client_id;
             dropped += 1;
             tracing::warn!(round, client_id, %reason, "dropping the update farthest from the global model, re-aggregating");
             if let Some(p) = state.participants.get_mut(&client_id) {
@@ -140,7 +141,7 @@ impl Running {
 }
 
 /// Index of the update farthest (Euclidean) from `global`: after a failed aggregate, the likeliest culprit.
-fn farthest(global: &NamedTensors, updates: &[(u64, NamedTensors, u64)]) -> usize {
+fn farthest(global: &NamedTensors, updates: &[RoundUpdate]) -> usize {
     let distance = |update: &NamedTensors| -> f64 {
         global
             .iter()
@@ -150,6 +151,6 @@ fn farthest(global: &NamedTensors, updates: &[(u64, NamedTensors, u64)]) -> usiz
             })
             .sum()
     };
-    let distances: Vec<f64> = updates.iter().map(|(_, update, _)| distance(update)).collect();
+    let distances: Vec<f64> = updates.iter().map(|u| distance(&u.tensors)).collect();
     (0..updates.len()).max_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap_or(0)
 }

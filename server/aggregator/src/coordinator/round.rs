@@ -4,7 +4,9 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use fedvla_federation::{ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, fnv1a, mix};
+use fedvla_federation::{
+    Contribution, ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, fnv1a, mix,
+};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -50,20 +52,37 @@ pub(super) struct RoundState {
     rollouts_requested: bool,
 }
 
+/// An update ready to aggregate.
+pub(super) struct RoundUpdate {
+    pub client_id: u64,
+    pub tensors: NamedTensors,
+    /// The weight the server gives it: the examples of the client's shard.
+    pub examples: u64,
+    /// The mean loss of the client's local steps, as it reported it.
+    pub train_loss: f64,
+}
+
+impl RoundUpdate {
+    pub fn contribution(&self) -> Contribution<'_> {
+        Contribution { tensors: &self.tensors, examples: self.examples, train_loss: Some(self.train_loss) }
+    }
+}
+
 impl RoundState {
-    /// The round's updates (client id, tensors, weight), in the order of the clients' names, so the aggregate
-    /// does not depend on arrival or id order.
-    pub(super) fn take_updates(&mut self) -> Vec<(u64, NamedTensors, u64)> {
-        let mut updates: Vec<(&str, u64, NamedTensors, u64)> = self
+    /// The round's updates in the order of the clients' names, so the aggregate does not depend on arrival or id
+    /// order.
+    pub(super) fn take_updates(&mut self) -> Vec<RoundUpdate> {
+        let mut updates: Vec<(&str, RoundUpdate)> = self
             .participants
             .iter_mut()
-            .filter_map(|(id, p)| {
+            .filter_map(|(&client_id, p)| {
                 let tensors = p.model.take()?;
-                Some((p.name.as_str(), *id, tensors, p.examples))
+                let train_loss = p.update.as_ref()?.train_loss;
+                Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples: p.examples, train_loss }))
             })
             .collect();
-        updates.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
-        updates.into_iter().map(|(_, id, t, n)| (id, t, n)).collect()
+        updates.sort_by(|a, b| (a.0, a.1.client_id).cmp(&(b.0, b.1.client_id)));
+        updates.into_iter().map(|(_, u)| u).collect()
     }
 
     /// One metrics record per sampled client.

@@ -4,7 +4,7 @@
 //! clipping half of DP-FedAvg (McMahan et al. 2018) and a defence against scaled updates on its own.
 
 use super::dp::PrivacyReport;
-use super::interface::{Aggregation, Step, Strategy};
+use super::interface::{Aggregation, Contribution, Step, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
@@ -47,11 +47,11 @@ struct Clipping {
 }
 
 impl Aggregation for Clipping {
-    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
-        match clip_change(&self.global, update, self.max_norm) {
-            Some((_, Some(clipped))) => self.inner.fold(&clipped, examples),
+    fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
+        match clip_change(&self.global, update.tensors, self.max_norm) {
+            Some((_, Some(clipped))) => self.inner.fold(update.with_tensors(&clipped)),
             // Within the norm, or a mismatch the wrapped rule reports with its index.
-            _ => self.inner.fold(update, examples),
+            _ => self.inner.fold(update),
         }
     }
 

@@ -18,7 +18,7 @@ use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
 use super::clipping::clip_change;
-use super::interface::{Aggregation, Step, Strategy};
+use super::interface::{Aggregation, Contribution, Step, Strategy};
 use crate::accountant::{PrivacySpent, privacy_spent};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
@@ -191,12 +191,13 @@ struct DpRound {
 }
 
 impl Aggregation for DpRound {
-    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
-        let Some((norm, clipped)) = clip_change(&self.global, update, self.clip_norm) else {
+    fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
+        let Some((norm, clipped)) = clip_change(&self.global, update.tensors, self.clip_norm) else {
             // The wrapped rule reports the mismatch with its index.
-            return self.inner.fold(update, examples);
+            return self.inner.fold(update);
         };
-        self.inner.fold(clipped.as_ref().unwrap_or(update), examples)?;
+        let examples = update.examples;
+        self.inner.fold(update.with_tensors(clipped.as_ref().unwrap_or(update.tensors)))?;
         self.folded += 1;
         self.within += usize::from(norm <= self.clip_norm);
         self.total_weight += u128::from(examples);

@@ -5,10 +5,33 @@ use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
+/// One client's part in a round: its trained tensors, the weight the server gives it (the examples of the shard
+/// it assigned), and the mean loss of its local training as the client reported it (QFedAvg weighs by it).
+#[derive(Debug, Clone, Copy)]
+pub struct Contribution<'a> {
+    pub tensors: &'a NamedTensors,
+    pub examples: u64,
+    pub train_loss: Option<f64>,
+}
+
+impl<'a> Contribution<'a> {
+    /// The same client's part with other tensors (a wrapper's clipped copy).
+    pub fn with_tensors(self, tensors: &'a NamedTensors) -> Self {
+        Self { tensors, ..self }
+    }
+}
+
+/// Tensors and weight, no reported loss.
+impl<'a> From<(&'a NamedTensors, u64)> for Contribution<'a> {
+    fn from((tensors, examples): (&'a NamedTensors, u64)) -> Self {
+        Self { tensors, examples, train_loss: None }
+    }
+}
+
 /// One round's aggregation in progress.
 pub trait Aggregation: Send {
-    /// Folds one client's update (its trained tensors) with weight `examples`.
-    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError>;
+    /// Folds one client's update.
+    fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError>;
 
     /// The round's aggregate of everything folded.
     fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError>;
@@ -52,17 +75,18 @@ pub trait Strategy: Send {
     }
 }
 
-/// Every update of a round folded in order: the aggregate of `strategy` over `updates` (tensors, weight) from
-/// `global`, and the step it leads to (uncommitted).
+/// Every update of a round folded in order: the aggregate of `strategy` over `updates` from `global`, and the
+/// step it leads to (uncommitted).
 pub fn aggregate<'a>(
     strategy: &dyn Strategy,
     global: &NamedTensors,
-    updates: impl IntoIterator<Item = (&'a NamedTensors, u64)>,
+    updates: impl IntoIterator<Item = impl Into<Contribution<'a>>>,
 ) -> Result<Step, AggregateError> {
     let mut round = strategy.begin(global);
-    for (index, (update, examples)) in updates.into_iter().enumerate() {
-        round.fold(update, examples).map_err(|e| match e {
+    for (index, update) in updates.into_iter().enumerate() {
+        round.fold(update.into()).map_err(|e| match e {
             AggregateError::Mismatch { source, .. } => AggregateError::Mismatch { index, source },
+            AggregateError::Loss { rule, loss, .. } => AggregateError::Loss { index, rule, loss },
             other => other,
         })?;
     }

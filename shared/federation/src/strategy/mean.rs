@@ -1,6 +1,6 @@
 //! The example-weighted mean of the clients' models: FedAvg, and FedProx, whose difference is on the clients.
 
-use super::interface::{Aggregation, Strategy};
+use super::interface::{Aggregation, Contribution, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
@@ -56,11 +56,11 @@ impl WeightedMean {
 }
 
 impl Aggregation for WeightedMean {
-    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
-        update.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index: self.folded, source })?;
+    fn fold(&mut self, Contribution { tensors, examples, .. }: Contribution<'_>) -> Result<(), AggregateError> {
+        tensors.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index: self.folded, source })?;
         let w = examples as f64;
         for (name, _, sum) in &mut self.sums {
-            let values = &update.get(name).expect("validated against the global spec").values;
+            let values = &tensors.get(name).expect("validated against the global spec").values;
             for (a, v) in sum.iter_mut().zip(values) {
                 *a += w * f64::from(*v);
             }

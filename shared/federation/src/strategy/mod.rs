@@ -9,12 +9,14 @@ mod clipping;
 mod dp;
 mod interface;
 mod mean;
+mod qffl;
 mod robust;
 mod server_opt;
 
 pub use clipping::ClippedUpdates;
 pub use dp::{ClipNorm, DpFedAvg, PrivacyReport};
-pub use interface::{Aggregation, Step, Strategy, aggregate};
+pub use interface::{Aggregation, Contribution, Step, Strategy, aggregate};
 pub use mean::{FedAvg, FedProx, WeightedMean};
+pub use qffl::QFedAvg;
 pub use robust::{Bulyan, FedMedian, FedTrimmedAvg, Krum};
 pub use server_opt::{Adaptivity, FedAdaptive, FedAvgM};

@@ -7,7 +7,7 @@
 //! their median, so an attacker can neither win Krum's vote nor pull single coordinates. All buffer the round's
 //! updates.
 
-use super::interface::{Aggregation, Strategy};
+use super::interface::{Aggregation, Contribution, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::{NamedTensors, TensorSpec};
@@ -203,7 +203,7 @@ impl Buffered {
         let mut mean = super::mean::WeightedMean::new(&self.global);
         for &i in &order[..keep.clamp(1, n)] {
             let (update, examples) = &self.updates[i];
-            mean.fold(update, (*examples).max(1))?;
+            mean.fold((update, (*examples).max(1)).into())?;
         }
         Box::new(mean).finish()
     }
@@ -247,9 +247,11 @@ impl Buffered {
 }
 
 impl Aggregation for Buffered {
-    fn fold(&mut self, update: &NamedTensors, examples: u64) -> Result<(), AggregateError> {
-        update.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index: self.updates.len(), source })?;
-        self.updates.push((update.clone(), examples));
+    fn fold(&mut self, Contribution { tensors, examples, .. }: Contribution<'_>) -> Result<(), AggregateError> {
+        tensors
+            .validate(&self.spec)
+            .map_err(|source| AggregateError::Mismatch { index: self.updates.len(), source })?;
+        self.updates.push((tensors.clone(), examples));
         Ok(())
     }
 

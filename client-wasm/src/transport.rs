@@ -57,6 +57,21 @@ impl ClientTransport for BrowserTransport {
         fetch_with_progress(&self.url(&routes::model(version)), |_, _| {}).await.map_err(|e| format!("{e:?}").into())
     }
 
+    async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
+        let url = self.url(&routes::correction(round));
+        let response = gloo_net::http::Request::get(&url)
+            .header("authorization", &format!("Bearer {session}"))
+            .send()
+            .await
+            .map_err(|e| format!("GET {url}: {e}"))?;
+        if !response.ok() {
+            return Err(
+                format!("GET {url}: {} {}", response.status(), response.text().await.unwrap_or_default()).into()
+            );
+        }
+        response.binary().await.map_err(|e| format!("GET {url}: {e}").into())
+    }
+
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
         let url = self.url(&routes::rollout_video(round, &video.file_name));
         let body = js_sys::Uint8Array::from(video.bytes.as_slice());

@@ -180,6 +180,10 @@ impl LocalTrainer for BrowserTrainer {
         self.inner.set_global(global)
     }
 
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        self.inner.set_correction(correction)
+    }
+
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         let (status, round, started) = (&self.status, task.round, self.started);
         let first_step_reported = &mut self.first_step_reported;

@@ -79,6 +79,10 @@ impl<T: LocalTrainer> LocalTrainer for Attacker<T> {
         self.inner.set_global(global)
     }
 
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        self.inner.set_correction(correction)
+    }
+
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         let mut out = self.inner.train(task).await?;
         if let Some(global) = &self.global {

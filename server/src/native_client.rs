@@ -121,6 +121,12 @@ impl ClientTransport for NativeTransport {
         self.get(&routes::model(version)).await
     }
 
+    async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
+        let request = hyper::Request::get(routes::correction(round))
+            .header(hyper::header::AUTHORIZATION, format!("Bearer {session}"));
+        http_request(&self.authority, request, Bytes::new()).await
+    }
+
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
         let request = hyper::Request::post(routes::rollout_video(round, &video.file_name))
             .header(hyper::header::AUTHORIZATION, format!("Bearer {session}"))

@@ -258,7 +258,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             lr: config.lr,
             lr_schedule: config.lr_schedule(round, u64::from(steps_per_round)),
             seed: config.seed ^ round.wrapping_mul(0x9e37_79b9_7f4a_7c15),
-            strategy: StrategyParams { name: "centralized".into(), proximal_mu: 0.0 },
+            strategy: StrategyParams::plain("centralized"),
             // The optimizer's moments carry over from round to round: one continuous run.
             keep_optimizer_state: true,
             deadline_ms: config.round_deadline_ms,

@@ -248,6 +248,7 @@ async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
         ("multi-krum", five),
         ("bulyan", "num-clients=7 min-clients=7 min-fit=7"),
         ("qfedavg", ""),
+        ("scaffold", ""),
         ("fedavg", "dp-noise-multiplier=0.1 dp-clip-norm=0.5"),
         ("fedadam", "dp-noise-multiplier=0.1 dp-clip-norm=0.5 dp-clip-quantile=0.5 dp-clip-count-stddev=1"),
     ] {
@@ -275,6 +276,7 @@ async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
             assert!(tasks.iter().all(|t| t.strategy.name == strategy), "{strategy}: {:?}", tasks[0].strategy);
             let mu = if strategy == "fedprox" { 0.1 } else { 0.0 };
             assert!(tasks.iter().all(|t| t.strategy.proximal_mu == mu), "{strategy}");
+            assert!(tasks.iter().all(|t| t.strategy.control_variates == (strategy == "scaffold")), "{strategy}");
         }
         let lines = fedvla_aggregator::records::read_metrics(run_dir.path()).unwrap();
         let loss = |i: usize| lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss;

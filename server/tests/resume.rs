@@ -53,14 +53,15 @@ async fn killed_after_round_one_then_resumed() {
     assert!(loss(2) < loss(1), "round 2 built on round 1");
 }
 
-/// A strategy with state (FedAdam's moments, FedAvgM's velocity, DP-FedAvg's round count, which seeds its noise,
-/// and adaptive clipping norm) killed during round 2 of 3 and resumed ends on the model of an uninterrupted run: its
+/// A strategy with state (FedAdam's moments, FedAvgM's velocity, SCAFFOLD's control variates, the server's and
+/// each client's, DP-FedAvg's round count, which seeds its noise, and adaptive clipping norm) killed during round 2 of 3 and resumed ends on the model of an uninterrupted run: its
 /// state is saved with each round and taken up again on resume.
 #[tokio::test]
 async fn a_stateful_strategy_resumed_equals_the_uninterrupted_run() {
     for strategy in [
         "fedadam server-lr=0.05",
         "fedavgm server-lr=1 server-momentum=0.5",
+        "scaffold",
         "fedavg dp-noise-multiplier=0.1 dp-clip-norm=0.5 dp-clip-quantile=0.5 dp-clip-count-stddev=1",
     ] {
         let cfg = config(&format!("num-server-rounds=3 strategy={strategy}"));

@@ -41,6 +41,10 @@ impl LocalTrainer for Recording {
     fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
         self.inner.set_global(global)
     }
+
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        self.inner.set_correction(correction)
+    }
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         if self.hang_from_round.is_some_and(|r| task.round >= r) {
             std::future::pending::<()>().await;
@@ -85,7 +89,12 @@ struct Run {
 }
 
 async fn run(dataset: &Path, out: &Path, seed: u64) -> Run {
-    let cfg = config(dataset, out, seed);
+    run_with(config(dataset, out, seed)).await
+}
+
+async fn run_with(cfg: RunConfig) -> Run {
+    let out = cfg.output_dir.clone();
+    let out = Path::new(&out);
     let run_dir = RunDir::create(out, &cfg).unwrap();
     let workload = SmolVlaWorkload::prepare(&cfg, &run_dir.path().join("shards")).unwrap();
     let initial = workload.initial_model().unwrap();
@@ -236,6 +245,41 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
     assert_ne!(model(&first), model(&other), "another seed, another global model");
 }
 
+/// SCAFFOLD on the real workload: every client downloads its correction each round over HTTP (with its session)
+/// and its trainer applies it; round 1's corrections are zero (its clients train as FedAvg's), from round 2 on
+/// they move the clients' steps, and the server keeps its variate and one per shard with the round.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scaffold_corrects_the_clients_of_the_tiny_smolvla() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = dataset(tmp.path());
+    let with = |strategy: &str, out: &str| {
+        config(&data, &tmp.path().join(out), 3).with_overrides(&format!("strategy={strategy}")).unwrap()
+    };
+    let scaffold = run_with(with("scaffold", "scaffold")).await;
+    let fedavg = run_with(with("fedavg", "fedavg")).await;
+    let round = |run: &Run, round: u64| -> Vec<NamedTensors> {
+        run.updates.iter().flat_map(|u| u.iter().filter(|(r, _)| *r == round).map(|(_, o)| o.update.clone())).collect()
+    };
+    assert_eq!(round(&scaffold, 1), round(&fedavg, 1), "round 1's corrections are zero");
+    assert_ne!(round(&scaffold, 2), round(&fedavg, 2), "round 2's corrections move the clients' steps");
+    let loss = |run: &Run, i: usize| {
+        let lines = fedvla_aggregator::records::read_metrics(&run.dir).unwrap();
+        lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss
+    };
+    // Six steps from random weights move the held-out loss little either way: the corrections steer the clients,
+    // they do not derail them.
+    let (ours, theirs) = (loss(&scaffold, 2), loss(&fedavg, 2));
+    assert!(ours.is_finite() && (ours - theirs).abs() < 0.1 * theirs, "scaffold {ours}, fedavg {theirs}");
+    // The strategy's state went to disk with the round: the server's variate and one per client (by shard).
+    let (run_dir, _) = RunDir::open(&scaffold.dir).unwrap();
+    let state = run_dir.load_strategy_state(2).unwrap();
+    let trainable = scaffold.initial.len();
+    assert_eq!(state.len(), 4 * trainable, "c and the 3 clients' c_i");
+    for shard in 0..3 {
+        assert!(state.iter().any(|(name, _)| name.starts_with(&format!("client/{shard}/"))), "shard {shard}");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn client_shards_download_over_http_with_size_and_checksum() {
     let tmp = tempfile::tempdir().unwrap();
@@ -374,7 +418,7 @@ fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so
         lr: 1e-3,
         lr_schedule: None,
         seed: round,
-        strategy: fedvla_federation::StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
+        strategy: fedvla_federation::StrategyParams::plain("fedavg"),
         keep_optimizer_state,
         deadline_ms: 60_000,
         eval_request: false,

@@ -54,6 +54,8 @@ pub enum StrategyKind {
     /// Krum's `n - 2 krum-f` best, then per coordinate the mean of the `n - 4 krum-f` nearest their median
     /// (needs min-fit >= 4 krum-f + 3).
     Bulyan,
+    /// SCAFFOLD (Karimireddy et al. 2020, option II): control variates per client, kept by the server; `server-lr`.
+    Scaffold,
     /// q-FedAvg (Li et al. 2020): clients weighed by their reported loss to the power `qfedavg-q`, step size
     /// `qfedavg-lr`.
     Qfedavg,

@@ -1,8 +1,11 @@
-//! The upload sessions of connected clients: the bearer token each connection's welcome carries, and the rollout
-//! videos each client may still upload for the round that asked it for them (and no other).
+//! The sessions of connected clients: the bearer token each connection's welcome carries, the rollout videos each
+//! client may still upload for the round that asked it for them (and no other), and the SCAFFOLD correction each
+//! may download for its round.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
+
+use bytes::Bytes;
 
 /// Session tokens of the connected clients, for their HTTP uploads, and the rollout videos each may upload.
 #[derive(Clone, Default)]
@@ -15,6 +18,8 @@ struct SessionTable {
     by_token: HashMap<String, u64>,
     /// Client id -> (round, videos it may still upload for that round).
     uploads: HashMap<u64, (u64, u32)>,
+    /// Client id -> (round, its SCAFFOLD correction for that round, as safetensors).
+    corrections: HashMap<u64, (u64, Bytes)>,
 }
 
 impl Sessions {
@@ -29,6 +34,17 @@ impl Sessions {
         let mut table = self.table();
         table.by_token.retain(|_, id| *id != client_id);
         table.uploads.remove(&client_id);
+        table.corrections.remove(&client_id);
+    }
+
+    /// Offers `client_id` its SCAFFOLD correction for `round`.
+    pub fn offer_correction(&self, client_id: u64, round: u64, correction: Bytes) {
+        self.table().corrections.insert(client_id, (round, correction));
+    }
+
+    /// The correction offered to `client_id` for `round`.
+    pub fn correction(&self, client_id: u64, round: u64) -> Option<Bytes> {
+        self.table().corrections.get(&client_id).filter(|(r, _)| *r == round).map(|(_, bytes)| bytes.clone())
     }
 
     /// Lets `client_id` upload `videos` rollout videos for `round` (its task asked for that many episodes).
@@ -36,9 +52,11 @@ impl Sessions {
         self.table().uploads.insert(client_id, (round, videos));
     }
 
-    /// Ends every upload permission of `round` (it closed).
+    /// Ends every upload permission and correction of `round` (it closed).
     pub fn end_uploads(&self, round: u64) {
-        self.table().uploads.retain(|_, (r, _)| *r != round);
+        let mut table = self.table();
+        table.uploads.retain(|_, (r, _)| *r != round);
+        table.corrections.retain(|_, (r, _)| *r != round);
     }
 
     pub fn client(&self, token: &str) -> Option<u64> {

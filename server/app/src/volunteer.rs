@@ -1,7 +1,8 @@
 //! What volunteers download and upload over HTTP, beside the WebSocket: the setup (`GET /api/volunteer`: which
 //! shard to train on, the policy configuration, where the frozen weights are), the shard and its manifest, the
 //! frozen weights (named by content hash so browsers cache them forever), the global model, and rollout videos
-//! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked).
+//! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked), and a
+//! SCAFFOLD client's correction for its round (`GET /scaffold/{round}`, by the same token).
 //! A run with an auth token serves its downloads only to requests that present it ([`RunToken`]).
 
 use std::sync::Arc;
@@ -35,6 +36,7 @@ pub fn routes() -> Router<AppState> {
         .route(routes::SHARD, get(get_shard))
         .route(routes::SHARD_MANIFEST, get(get_shard_manifest))
         .route(routes::MODEL, get(get_model))
+        .route(routes::CORRECTION, get(get_correction))
         .route(routes::ROLLOUT_VIDEO, post(post_video).layer(DefaultBodyLimit::max(MAX_VIDEO_BYTES)))
 }
 
@@ -156,6 +158,29 @@ async fn get_model(
     Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes.clone()).into_response())
 }
 
+/// The client whose connection's session token the request presents.
+fn session_client(state: &VolunteerState, headers: &HeaderMap) -> Result<u64, ServerError> {
+    let token = bearer(headers)
+        .ok_or_else(|| ServerError::Unauthorized("no `Authorization: Bearer <session>` header".into()))?;
+    state
+        .sessions
+        .client(token)
+        .ok_or_else(|| ServerError::Unauthorized("unknown session (is the client still connected?)".into()))
+}
+
+/// The SCAFFOLD correction `c - c_i` the round's task offered the asking client (safetensors).
+async fn get_correction(
+    Path(round): Path<u64>,
+    State(state): State<VolunteerState>,
+    headers: HeaderMap,
+) -> Result<Response, ServerError> {
+    let client_id = session_client(&state, &headers)?;
+    let bytes = state.sessions.correction(client_id, round).ok_or_else(|| {
+        ServerError::NotFound(format!("round {round} offered client {client_id} no SCAFFOLD correction"))
+    })?;
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
+}
+
 /// Stores a rollout video as `evaluate/round_N/client_K/<file>`.
 async fn post_video(
     Path((round, file)): Path<(u64, String)>,
@@ -163,12 +188,7 @@ async fn post_video(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Response, ServerError> {
-    let token = bearer(&headers)
-        .ok_or_else(|| ServerError::Unauthorized("no `Authorization: Bearer <session>` header".into()))?;
-    let client_id = state
-        .sessions
-        .client(token)
-        .ok_or_else(|| ServerError::Unauthorized("unknown session (is the client still connected?)".into()))?;
+    let client_id = session_client(&state, &headers)?;
     let safe_name = !file.is_empty()
         && file.len() <= 64
         && file.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))

@@ -110,6 +110,10 @@ impl LocalTrainer for TestTrainer {
         self.inner.set_global(global)
     }
 
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        self.inner.set_correction(correction)
+    }
+
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         self.tasks.lock().unwrap().push(task.clone());
         if let Some(gate) = &self.gate {

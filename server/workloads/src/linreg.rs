@@ -122,6 +122,8 @@ pub struct LinRegTrainer {
     global: (Vec<f32>, f32),
     weight: Vec<f32>,
     bias: f32,
+    /// SCAFFOLD's `c - c_i`, added to every step's gradient (zeros: none).
+    correction: (Vec<f32>, f32),
 }
 
 impl LinRegTrainer {
@@ -137,6 +139,7 @@ impl LinRegTrainer {
             train: world.examples(seed, train_examples(shard), shift),
             heldout: world.examples(seed ^ 1, 32, shift),
             global: (weight.clone(), bias),
+            correction: (vec![0.0; weight.len()], 0.0),
             weight,
             bias,
         }
@@ -161,7 +164,16 @@ impl LocalTrainer for LinRegTrainer {
         Ok(())
     }
 
-    /// Minibatch SGD on the squared error, plus FedProx's proximal term when `proximal_mu` > 0.
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        self.correction = match correction.is_empty() {
+            true => (vec![0.0; FEATURES], 0.0),
+            false => head(correction)?,
+        };
+        Ok(())
+    }
+
+    /// Minibatch SGD on the squared error, plus FedProx's proximal term when `proximal_mu` > 0 and SCAFFOLD's
+    /// correction when one is set.
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         let mut rng = StdRng::seed_from_u64(task.seed);
         let mut order: Vec<usize> = (0..self.train.len()).collect();
@@ -189,10 +201,11 @@ impl LocalTrainer for LinRegTrainer {
                 grad_b += 2.0 * err / batch as f32;
             }
             loss_sum += batch_loss / batch as f64;
-            for ((w, g), w0) in self.weight.iter_mut().zip(grad_w).zip(&self.global.0) {
-                *w -= lr * (g + mu * (*w - w0));
+            let (correction_w, correction_b) = &self.correction;
+            for (((w, g), w0), c) in self.weight.iter_mut().zip(grad_w).zip(&self.global.0).zip(correction_w) {
+                *w -= lr * (g + mu * (*w - w0) + c);
             }
-            self.bias -= lr * (grad_b + mu * (self.bias - self.global.1));
+            self.bias -= lr * (grad_b + mu * (self.bias - self.global.1) + correction_b);
         }
         let mut update = NamedTensors::new();
         update.insert(WEIGHT, vec![1, FEATURES], self.weight.clone())?;
@@ -287,7 +300,7 @@ mod tests {
             lr: 0.05,
             lr_schedule: None,
             seed,
-            strategy: StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 },
+            strategy: StrategyParams::plain("fedavg"),
             keep_optimizer_state: false,
             deadline_ms: 1000,
             eval_request: false,

@@ -158,6 +158,10 @@ impl LocalTrainer for FilmedRollouts {
         self.0.set_global(global)
     }
 
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        self.0.set_correction(correction)
+    }
+
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         self.0.train(task).await
     }

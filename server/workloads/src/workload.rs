@@ -8,7 +8,7 @@ use fedvla_aggregator::registry::VolunteerOffer;
 use fedvla_aggregator::run_dir::{ModelExporter, RunDir};
 use fedvla_federation::{
     Adaptivity, BoxError, Bulyan, ClipNorm, ClippedUpdates, DpFedAvg, Evaluator, FedAdaptive, FedAvg, FedAvgM,
-    FedMedian, FedProx, FedTrimmedAvg, Krum, NamedTensors, QFedAvg, Strategy, fnv1a, mix,
+    FedMedian, FedProx, FedTrimmedAvg, Krum, NamedTensors, QFedAvg, Scaffold, Strategy, fnv1a, mix,
 };
 
 pub trait Workload {
@@ -52,6 +52,7 @@ pub fn strategy(c: &RunConfig) -> Box<dyn Strategy> {
         StrategyKind::Krum => Box::new(Krum { f: c.krum_f, keep: 1 }),
         StrategyKind::MultiKrum => Box::new(Krum { f: c.krum_f, keep: c.krum_keep }),
         StrategyKind::Bulyan => Box::new(Bulyan { f: c.krum_f }),
+        StrategyKind::Scaffold => Box::new(Scaffold::new(c.server_lr, c.num_clients)),
         StrategyKind::Qfedavg => Box::new(QFedAvg { q: c.qfedavg_q, lr: c.qfedavg_lr }),
     };
     if c.dp_enabled() {

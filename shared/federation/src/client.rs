@@ -53,6 +53,15 @@ pub trait LocalTrainer {
     /// Replaces the trainable tensors with the global ones; frozen tensors are untouched.
     fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError>;
 
+    /// What to add to the direction of each local step from now on (SCAFFOLD's `c - c_i`, per unit of learning
+    /// rate); empty: nothing. A trainer that cannot refuses a correction.
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        match correction.is_empty() {
+            true => Ok(()),
+            false => Err("this trainer cannot apply SCAFFOLD's correction".into()),
+        }
+    }
+
     /// Runs `task.local_steps` steps at `task.batch_size` and `task.lr` from the tensors last set.
     fn train(&mut self, task: &RoundTask) -> impl Future<Output = Result<TrainOutput, BoxError>>;
 
@@ -80,6 +89,10 @@ pub trait ClientTransport {
 
     /// Downloads the global trainable tensors of `version` as safetensors bytes (`GET /model/{version}`).
     fn fetch_model(&mut self, version: u64) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
+
+    /// Downloads this client's SCAFFOLD correction for `round` as safetensors bytes (`GET /scaffold/{round}`,
+    /// authorised by the session token from the welcome).
+    fn fetch_correction(&mut self, round: u64, session: &str) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
 
     /// Uploads a rollout video of `round` (`POST /rollout/{round}/{file_name}`, authorised by the session
     /// token from the welcome).
@@ -158,6 +171,8 @@ pub enum ClientError {
     Protocol(String),
     #[error("global model version {version}: {source}")]
     Model { version: u64, source: TensorError },
+    #[error("SCAFFOLD correction of round {round}: {source}")]
+    Correction { round: u64, source: TensorError },
     #[error("connection closed before the run finished")]
     Closed,
 }
@@ -206,6 +221,11 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 };
                 trainer.set_global(&tensors).map_err(ClientError::Trainer)?;
                 let global = &global.insert((task.model_version, tensors)).1;
+                let correction = match task.strategy.control_variates {
+                    true => link.fetch_correction(task.round, &session).await?,
+                    false => NamedTensors::new(),
+                };
+                trainer.set_correction(&correction).map_err(ClientError::Trainer)?;
                 if task.eval_request {
                     let eval = trainer.evaluate().await.map_err(ClientError::Trainer)?;
                     link.send(&ClientMessage::EvalResult {
@@ -356,6 +376,15 @@ impl<T: ClientTransport> Link<'_, T> {
         let tensors =
             NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Model { version, source })?;
         tensors.validate(&tensors.spec()).map_err(|source| ClientError::Model { version, source })?;
+        Ok(tensors)
+    }
+
+    async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<NamedTensors, ClientError> {
+        let bytes = self.transport.fetch_correction(round, session).await.map_err(ClientError::Transport)?;
+        self.bytes_down += bytes.len() as u64;
+        let tensors =
+            NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Correction { round, source })?;
+        tensors.validate(&tensors.spec()).map_err(|source| ClientError::Correction { round, source })?;
         Ok(tensors)
     }
 }

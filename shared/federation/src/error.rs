@@ -88,6 +88,8 @@ pub enum AggregateError {
     Mismatch { index: usize, source: TensorError },
     #[error("update {index} reports no usable training loss ({loss:?}): {rule} weighs every client by it")]
     Loss { index: usize, rule: &'static str, loss: Option<f64> },
+    #[error("update {index}: {rule} needs {what}, which the server does not know of it")]
+    Unknown { index: usize, rule: &'static str, what: &'static str },
     #[error("the aggregate is not a usable model: {0}")]
     Aggregate(TensorError),
 }

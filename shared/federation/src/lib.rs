@@ -29,6 +29,6 @@ pub use protocol::{
 pub use seed::{fnv1a, mix};
 pub use strategy::{
     Adaptivity, Aggregation, Bulyan, ClipNorm, ClippedUpdates, Contribution, DpFedAvg, FedAdaptive, FedAvg, FedAvgM,
-    FedMedian, FedProx, FedTrimmedAvg, Krum, PrivacyReport, QFedAvg, Step, Strategy, WeightedMean, aggregate,
+    FedMedian, FedProx, FedTrimmedAvg, Krum, PrivacyReport, QFedAvg, Scaffold, Step, Strategy, WeightedMean, aggregate,
 };
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

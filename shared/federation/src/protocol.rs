@@ -25,6 +25,7 @@ pub mod routes {
     pub const SHARD_MANIFEST: &str = "/shard/{index}/manifest";
     pub const FROZEN: &str = "/policy/frozen/{tag}";
     pub const ROLLOUT_VIDEO: &str = "/rollout/{round}/{file}";
+    pub const CORRECTION: &str = "/scaffold/{round}";
 
     /// The global trainable tensors of `version` (safetensors).
     pub fn model(version: u64) -> String {
@@ -49,6 +50,11 @@ pub mod routes {
     /// Where a client uploads the rollout video `file` of `round` (authorised by its session).
     pub fn rollout_video(round: u64, file: &str) -> String {
         format!("/rollout/{round}/{file}")
+    }
+
+    /// SCAFFOLD's correction for the client whose session asks, in `round` (safetensors).
+    pub fn correction(round: u64) -> String {
+        format!("/scaffold/{round}")
     }
 }
 
@@ -152,6 +158,17 @@ pub struct StrategyParams {
     pub name: String,
     /// Weight of the proximal term `mu/2 * ||w - w_global||^2`; 0 for FedAvg.
     pub proximal_mu: f64,
+    /// SCAFFOLD: the client fetches its correction `c - c_i` for the round ([`routes::correction`], with its
+    /// session) and adds it to the direction of every local step.
+    #[serde(default)]
+    pub control_variates: bool,
+}
+
+impl StrategyParams {
+    /// A strategy whose clients train as FedAvg's do.
+    pub fn plain(name: &str) -> Self {
+        Self { name: name.into(), proximal_mu: 0.0, control_variates: false }
+    }
 }
 
 /// How clients encode their updates, chosen by the server for the run and announced in every task. Every encoding
@@ -237,6 +254,30 @@ pub struct RoundTask {
     /// How to encode the update.
     #[serde(default)]
     pub update_encoding: UpdateEncoding,
+}
+
+impl RoundTask {
+    /// The learning rate of local step `step` (from 0): constant, or on its schedule over the client's steps of
+    /// the whole run (LeRobot's `CosineDecayWithWarmupSchedulerConfig`: linear warmup from `lr / (warmup + 1)`,
+    /// then cosine decay to `final_lr`).
+    pub fn lr_at(&self, step: u32) -> f64 {
+        let Some(s) = self.lr_schedule else { return self.lr };
+        let (step, warmup, total) = (s.first_step + u64::from(step), s.warmup_steps, s.total_steps.max(1));
+        let w = warmup as f64;
+        let factor = if step < warmup {
+            if step == 0 { 1.0 / (w + 1.0) } else { (1.0 / (w + 1.0) - 1.0) * (1.0 - step as f64 / w) + 1.0 }
+        } else {
+            let cosine = 0.5 * (1.0 + (std::f64::consts::PI * step.min(total) as f64 / total as f64).cos());
+            let alpha = s.final_lr / self.lr;
+            (1.0 - alpha) * cosine + alpha
+        };
+        self.lr * factor
+    }
+
+    /// The sum of the round's learning rates: how far the round moves the model along a unit direction.
+    pub fn lr_sum(&self) -> f64 {
+        (0..self.local_steps).map(|k| self.lr_at(k)).sum()
+    }
 }
 
 /// LeRobot's cosine decay with linear warmup, over a client's steps of the whole run: this round's local steps
@@ -365,6 +406,40 @@ pub enum ServerMessage {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// LeRobot's schedule by hand: warmup 4 steps of 10 at peak 1, decay to 0.1. Step 0: 1/5; step 2:
+    /// (1/5 - 1)(1 - 2/4) + 1 = 0.6; step 4 (warmup over, cosine of 4/10 pi): 0.9 * 0.5 (1 + cos 0.4 pi) + 0.1;
+    /// from step 10 on: 0.1. A round of 3 steps from step 1 sums steps 1, 2 and 3.
+    #[test]
+    fn the_cosine_schedule_with_warmup_and_its_round_sums_by_hand() {
+        let schedule = LrSchedule { warmup_steps: 4, total_steps: 10, final_lr: 0.1, first_step: 0 };
+        let task = |first_step, local_steps| RoundTask {
+            round: 1,
+            model_version: 0,
+            local_steps,
+            batch_size: 1,
+            lr: 1.0,
+            lr_schedule: Some(LrSchedule { first_step, ..schedule }),
+            seed: 0,
+            strategy: StrategyParams::plain("fedavg"),
+            keep_optimizer_state: false,
+            deadline_ms: 1,
+            eval_request: false,
+            rollout: None,
+            update_encoding: UpdateEncoding::F32,
+        };
+        let at = |step| task(0, 20).lr_at(step);
+        let close = |a: f64, b: f64| assert!((a - b).abs() < 1e-12, "{a} != {b}");
+        close(at(0), 0.2);
+        close(at(2), 0.6);
+        close(at(4), 0.45 * (1.0 + (0.4 * std::f64::consts::PI).cos()) + 0.1);
+        close(at(10), 0.1);
+        close(at(15), 0.1);
+        close(task(1, 3).lr_sum(), at(1) + at(2) + at(3));
+        let constant = RoundTask { lr_schedule: None, lr: 0.5, ..task(0, 4) };
+        close(constant.lr_at(3), 0.5);
+        close(constant.lr_sum(), 2.0);
+    }
 
     #[test]
     fn messages_are_tagged_snake_case() {

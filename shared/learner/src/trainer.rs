@@ -8,7 +8,7 @@ use fedvla_federation::{
     RoundTask, TrainOutput,
 };
 use fedvla_policy::weights::ParamStore;
-use fedvla_policy::{CosineWarmup, SmolVla, SmolVlaConfig, Trainer, WeightMap};
+use fedvla_policy::{SmolVla, SmolVlaConfig, Trainer, WeightMap};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -117,7 +117,7 @@ impl SmolVlaTrainer {
                 cursor += 1;
             }
             let batch = self.examples.batch(&picked, chunk)?;
-            let loss = self.trainer.train_step_async(&batch, lr_at(task, step)).await?.loss;
+            let loss = self.trainer.train_step_async(&batch, task.lr_at(step)).await?.loss;
             loss_sum += loss as f64;
             after_step(StepProgress { step: step + 1, steps: task.local_steps, loss }).await;
         }
@@ -142,6 +142,11 @@ impl LocalTrainer for SmolVlaTrainer {
         Ok(())
     }
 
+    fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
+        let weights = (!correction.is_empty()).then(|| to_weights(correction));
+        Ok(self.trainer.set_correction(weights.as_ref())?)
+    }
+
     /// `local_steps` AdamW steps on batches drawn (seeded by the task) from the training rows,
     /// each row visited once per pass.
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
@@ -163,21 +168,6 @@ impl LocalTrainer for SmolVlaTrainer {
                 Ok(RolloutOutput { episode: rollout_episode(episode, &result), video: None })
             })
             .collect()
-    }
-}
-
-/// The learning rate of local step `step` (from 0) of `task`: constant, or on its schedule (LeRobot's cosine with
-/// warmup) over the client's steps of the whole run.
-pub fn lr_at(task: &RoundTask, step: u32) -> f64 {
-    match task.lr_schedule {
-        None => task.lr,
-        Some(s) => CosineWarmup {
-            peak_lr: task.lr,
-            decay_lr: s.final_lr,
-            warmup_steps: s.warmup_steps as usize,
-            decay_steps: s.total_steps.max(1) as usize,
-        }
-        .lr_at((s.first_step + u64::from(step)) as usize),
     }
 }
 

@@ -30,5 +30,5 @@ pub use normalize::{FeatureStats, NormStats};
 pub use policy_dir::PolicyDir;
 pub use smolvla::SmolVla;
 pub use tokenizer::{Tokenizer, WordTokenizer};
-pub use train::{CosineWarmup, StepReport, Trainer};
+pub use train::{StepReport, Trainer};
 pub use weights::{HostTensor, StoredDtype, WeightMap};

@@ -1,7 +1,7 @@
 //! Training SmolVLA's trainable set exactly as LeRobot does: AdamW (torch semantics, decoupled
 //! weight decay) over the tensors the configuration's switches train (by default the expert and the
-//! five projections), global grad-norm clipping, the cosine-with-warmup schedule, and seeded
-//! Beta(1.5, 1) time / Gaussian noise sampling. The frozen tensors live in a separate store that no
+//! five projections), global grad-norm clipping, and seeded Beta(1.5, 1) time / Gaussian noise sampling (each
+//! step's learning rate is the caller's: a round's schedule is `RoundTask::lr_at` in the federation crate). The frozen tensors live in a separate store that no
 //! optimizer ever sees.
 
 use std::collections::BTreeMap;
@@ -36,41 +36,6 @@ impl AdamWConfig {
     }
 }
 
-/// LeRobot's cosine decay with linear warmup, evaluated at an absolute step.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CosineWarmup {
-    pub peak_lr: f64,
-    pub decay_lr: f64,
-    pub warmup_steps: usize,
-    pub decay_steps: usize,
-}
-
-impl CosineWarmup {
-    /// The schedule for a run of `total_steps`; shorter runs than the decay horizon are rescaled as
-    /// LeRobot rescales them.
-    pub fn from_policy(cfg: &SmolVlaConfig, total_steps: usize) -> Self {
-        let (mut w, mut d) = (cfg.scheduler_warmup_steps, cfg.scheduler_decay_steps);
-        if total_steps < d {
-            w = (w as f64 * total_steps as f64 / d as f64) as usize;
-            d = total_steps;
-        }
-        Self { peak_lr: cfg.optimizer_lr, decay_lr: cfg.scheduler_decay_lr, warmup_steps: w, decay_steps: d.max(1) }
-    }
-
-    pub fn lr_at(&self, step: usize) -> f64 {
-        let w = self.warmup_steps as f64;
-        let factor = if step < self.warmup_steps {
-            if step == 0 { 1.0 / (w + 1.0) } else { (1.0 / (w + 1.0) - 1.0) * (1.0 - step as f64 / w) + 1.0 }
-        } else {
-            let s = step.min(self.decay_steps) as f64;
-            let cosine = 0.5 * (1.0 + (std::f64::consts::PI * s / self.decay_steps as f64).cos());
-            let alpha = self.decay_lr / self.peak_lr;
-            (1.0 - alpha) * cosine + alpha
-        };
-        self.peak_lr * factor
-    }
-}
-
 /// Figures of one optimizer step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepReport {
@@ -90,6 +55,8 @@ pub struct Trainer {
     rng: StdRng,
     device: Device,
     proximal: Option<Proximal>,
+    /// Added to every step's direction (SCAFFOLD's `c - c_i`, per unit of learning rate), by trainable key.
+    correction: BTreeMap<String, Tensor<1>>,
 }
 
 /// FedProx's proximal term `mu/2 * ||w - anchor||^2` over the trainable tensors (Li et al. 2020), the anchor being
@@ -123,6 +90,7 @@ impl Trainer {
             rng: StdRng::seed_from_u64(seed),
             device: device.clone(),
             proximal: None,
+            correction: BTreeMap::new(),
         })
     }
 
@@ -162,6 +130,22 @@ impl Trainer {
         let store = ParamStore::upload(weights.iter(), &self.device, true);
         self.trainable = store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
         self.model = self.model.with_trainable(&store);
+        Ok(())
+    }
+
+    /// From now on every step moves each trainable tensor by `lr * correction` more than AdamW would (SCAFFOLD's
+    /// `c - c_i`: the direction of a step is AdamW's per unit of learning rate, weight decay included); `None`
+    /// removes it. A correction names every trainable tensor.
+    pub fn set_correction(&mut self, correction: Option<&WeightMap>) -> Result<(), PolicyError> {
+        self.correction = match correction {
+            None => BTreeMap::new(),
+            Some(weights) => {
+                let expected: Vec<_> = self.model.cfg.param_specs().into_iter().filter(|s| s.trainable).collect();
+                check_keys(&expected, weights, "SCAFFOLD correction")?;
+                let store = ParamStore::upload(weights.iter(), &self.device, false);
+                store.flat().map(|(k, t, _)| (k.clone(), t.clone())).collect()
+            }
+        };
         Ok(())
     }
 
@@ -299,6 +283,10 @@ impl Trainer {
             let param = param * (1.0 - lr * weight_decay);
             let denom = v.clone().sqrt() / bias2_sqrt + eps;
             let param = param - (m.clone() / denom) * (lr / bias1);
+            let param = match self.correction.get(&name) {
+                Some(correction) => param - correction.clone() * lr,
+                None => param,
+            };
             self.moments.insert(name.clone(), (m, v));
             self.trainable.insert(name, (Tensor::from_inner(param).require_grad(), shape));
         }

@@ -136,3 +136,41 @@ fn new_weights_keep_the_optimizer_state_until_it_is_reset() {
     assert_eq!(trainer.steps_taken(), 0);
     assert_eq!(step_from(&mut trainer), first_step);
 }
+
+/// SCAFFOLD's correction: with it, a step moves every trainable tensor by exactly `lr * correction` more than
+/// AdamW's step from the same state on the same batch; a correction that misses a trainable tensor is refused.
+#[test]
+fn a_correction_shifts_each_step_by_lr_times_itself() {
+    let cfg = SmolVlaConfig::tiny();
+    let weights = init_random(&cfg.param_specs(), 1);
+    let device = Device::flex().autodiff();
+    let batch = Batch::random(&cfg, 2, 3);
+    let step = |correction: Option<&fedvla_policy::WeightMap>| {
+        let mut trainer = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+        trainer.set_correction(correction).unwrap();
+        let (noise, time) = trainer.sample_noise_and_time(2);
+        trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap();
+        trainer.trainable_weights()
+    };
+    let plain = step(None);
+    let correction = init_random(&cfg.param_specs(), 9)
+        .into_iter()
+        .filter(|(k, _)| plain.contains_key(k))
+        .collect::<fedvla_policy::WeightMap>();
+    let corrected = step(Some(&correction));
+    for (name, p) in &plain {
+        let (with, c) = (&corrected[name].data, &correction[name].data);
+        for (i, &without) in p.data.iter().enumerate() {
+            let expected = without - 1e-3 * c[i];
+            assert!(
+                (with[i] - expected).abs() <= 1e-6 * (1.0 + expected.abs()),
+                "{name}[{i}]: {} != {expected}",
+                with[i]
+            );
+        }
+    }
+    let mut partial = correction.clone();
+    partial.pop_first();
+    let mut trainer = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+    assert!(trainer.set_correction(Some(&partial)).is_err());
+}

@@ -28,6 +28,9 @@ pub(super) struct Participant {
     model: Option<NamedTensors>,
     /// What the update weighs: the client's shard's training examples (1 each where no shard is known).
     examples: u64,
+    /// Who the client is from round to round, for the strategies that keep state per client: its shard, or its
+    /// name's hash where it has none.
+    key: u64,
     /// Why the update was left out of the aggregate, when it was.
     pub(super) dropped: Option<String>,
     metrics: Option<RoundMetrics>,
@@ -47,6 +50,8 @@ struct AcceptedUpdate {
 
 pub(super) struct RoundState {
     round: u64,
+    /// The sum of the learning rates of every task's local steps.
+    lr_sum: f64,
     pub(super) participants: BTreeMap<u64, Participant>,
     /// Whether the tasks asked for sim rollouts, which clients run after their held-out evaluation.
     rollouts_requested: bool,
@@ -60,11 +65,20 @@ pub(super) struct RoundUpdate {
     pub examples: u64,
     /// The mean loss of the client's local steps, as it reported it.
     pub train_loss: f64,
+    /// See [`Participant`]'s.
+    pub key: u64,
+    pub lr_sum: f64,
 }
 
 impl RoundUpdate {
     pub fn contribution(&self) -> Contribution<'_> {
-        Contribution { tensors: &self.tensors, examples: self.examples, train_loss: Some(self.train_loss) }
+        Contribution {
+            tensors: &self.tensors,
+            examples: self.examples,
+            train_loss: Some(self.train_loss),
+            client: Some(self.key),
+            lr_sum: Some(self.lr_sum),
+        }
     }
 }
 
@@ -78,7 +92,8 @@ impl RoundState {
             .filter_map(|(&client_id, p)| {
                 let tensors = p.model.take()?;
                 let train_loss = p.update.as_ref()?.train_loss;
-                Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples: p.examples, train_loss }))
+                let (examples, key, lr_sum) = (p.examples, p.key, self.lr_sum);
+                Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples, train_loss, key, lr_sum }))
             })
             .collect();
         updates.sort_by(|a, b| (a.0, a.1.client_id).cmp(&(b.0, b.1.client_id)));
@@ -124,12 +139,22 @@ impl Running {
         let version = self.c.global_version();
         let mut participants = BTreeMap::new();
         let mut rollouts_requested = false;
+        let mut lr_sum = 0.0;
         for i in picked {
             let (name, client_id) = pool[i];
             let client = &self.clients[&client_id];
             let evaluates = round.is_multiple_of(cfg.eval_every);
             // A shard's own layouts: a volunteer without one gets a block by its name.
             let block = client.shard.map_or(fnv1a(name) % 1_000, |s| s.index as u64);
+            let key = client.shard.map_or(fnv1a(name), |s| s.index as u64);
+            let strategy = self.c.strategy.lock().expect("strategy lock");
+            match strategy.client_correction(key).map(|c| c.to_safetensors()) {
+                Some(Ok(bytes)) => self.c.sessions.offer_correction(client_id, round, bytes.into()),
+                Some(Err(e)) => tracing::error!(round, client_id, %e, "the client's correction cannot be encoded"),
+                None => {}
+            }
+            let strategy_params = strategy.client_params();
+            drop(strategy);
             let task = RoundTask {
                 round,
                 model_version: version,
@@ -138,7 +163,7 @@ impl Running {
                 lr: cfg.lr,
                 lr_schedule: cfg.lr_schedule(round, u64::from(cfg.local_steps)),
                 seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
-                strategy: self.c.strategy.lock().expect("strategy lock").client_params(),
+                strategy: strategy_params,
                 keep_optimizer_state: cfg.keep_optimizer_state,
                 deadline_ms: cfg.round_deadline_ms,
                 eval_request: evaluates,
@@ -161,13 +186,15 @@ impl Running {
             }
             // Weighed by what the server knows the client holds, never by what its update claims.
             let examples = client.shard.map_or(1, |s| s.train_examples);
+            lr_sum = task.lr_sum();
             client.outbox.send(ServerMessage::RoundTask(task)).ok();
             self.observe(RunEvent::ClientState { id: client_id, state: first_step });
-            participants.insert(client_id, Participant { name: name.to_owned(), examples, ..Participant::default() });
+            let participant = Participant { name: name.to_owned(), examples, key, ..Participant::default() };
+            participants.insert(client_id, participant);
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
         self.observe(RunEvent::RoundStarted { round, attempt, sampled: participants.keys().copied().collect() });
-        RoundState { round, participants, rollouts_requested }
+        RoundState { round, lr_sum, participants, rollouts_requested }
     }
 
     /// Handles events until every participant is done or the deadline passes.

@@ -38,6 +38,10 @@ impl Strategy for ClippedUpdates {
     fn privacy(&self) -> Option<PrivacyReport> {
         self.inner.privacy()
     }
+
+    fn client_correction(&self, client: u64) -> Option<NamedTensors> {
+        self.inner.client_correction(client)
+    }
 }
 
 struct Clipping {

@@ -6,12 +6,17 @@ use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
 /// One client's part in a round: its trained tensors, the weight the server gives it (the examples of the shard
-/// it assigned), and the mean loss of its local training as the client reported it (QFedAvg weighs by it).
+/// it assigned), what the strategies that need more know of it, where the server knows it.
 #[derive(Debug, Clone, Copy)]
 pub struct Contribution<'a> {
     pub tensors: &'a NamedTensors,
     pub examples: u64,
+    /// The mean loss of its local training, as the client reported it (QFedAvg weighs by it).
     pub train_loss: Option<f64>,
+    /// Who trained it, the same from round to round (its shard): SCAFFOLD keeps a control variate per client.
+    pub client: Option<u64>,
+    /// The sum of the learning rates of the round's local steps (SCAFFOLD's option II divides by it).
+    pub lr_sum: Option<f64>,
 }
 
 impl<'a> Contribution<'a> {
@@ -24,7 +29,7 @@ impl<'a> Contribution<'a> {
 /// Tensors and weight, no reported loss.
 impl<'a> From<(&'a NamedTensors, u64)> for Contribution<'a> {
     fn from((tensors, examples): (&'a NamedTensors, u64)) -> Self {
-        Self { tensors, examples, train_loss: None }
+        Self { tensors, examples, train_loss: None, client: None, lr_sum: None }
     }
 }
 
@@ -73,6 +78,13 @@ pub trait Strategy: Send {
     fn privacy(&self) -> Option<PrivacyReport> {
         None
     }
+
+    /// What client `client` adds to the direction of each of its local steps next round, for a strategy whose
+    /// [`StrategyParams::control_variates`] is set (empty: nothing yet).
+    fn client_correction(&self, client: u64) -> Option<NamedTensors> {
+        let _ = client;
+        None
+    }
 }
 
 /// Every update of a round folded in order: the aggregate of `strategy` over `updates` from `global`, and the
@@ -87,6 +99,7 @@ pub fn aggregate<'a>(
         round.fold(update.into()).map_err(|e| match e {
             AggregateError::Mismatch { source, .. } => AggregateError::Mismatch { index, source },
             AggregateError::Loss { rule, loss, .. } => AggregateError::Loss { index, rule, loss },
+            AggregateError::Unknown { rule, what, .. } => AggregateError::Unknown { index, rule, what },
             other => other,
         })?;
     }

@@ -13,7 +13,7 @@ pub struct FedAvg;
 
 impl Strategy for FedAvg {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams { name: "fedavg".into(), proximal_mu: 0.0 }
+        StrategyParams::plain("fedavg")
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
@@ -30,7 +30,7 @@ pub struct FedProx {
 
 impl Strategy for FedProx {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams { name: "fedprox".into(), proximal_mu: self.mu }
+        StrategyParams { proximal_mu: self.mu, ..StrategyParams::plain("fedprox") }
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {

@@ -11,6 +11,7 @@ mod interface;
 mod mean;
 mod qffl;
 mod robust;
+mod scaffold;
 mod server_opt;
 
 pub use clipping::ClippedUpdates;
@@ -19,4 +20,5 @@ pub use interface::{Aggregation, Contribution, Step, Strategy, aggregate};
 pub use mean::{FedAvg, FedProx, WeightedMean};
 pub use qffl::QFedAvg;
 pub use robust::{Bulyan, FedMedian, FedTrimmedAvg, Krum};
+pub use scaffold::Scaffold;
 pub use server_opt::{Adaptivity, FedAdaptive, FedAvgM};

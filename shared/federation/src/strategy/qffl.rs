@@ -20,7 +20,7 @@ pub struct QFedAvg {
 
 impl Strategy for QFedAvg {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams { name: "qfedavg".into(), proximal_mu: 0.0 }
+        StrategyParams::plain("qfedavg")
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
@@ -84,11 +84,10 @@ mod tests {
 
     fn qfedavg(q: f64, lr: f64, global: [f32; 2], updates: &[([f32; 2], f64)]) -> Result<Vec<f32>, AggregateError> {
         let tensors: Vec<NamedTensors> = updates.iter().map(|(u, _)| one(*u)).collect();
-        let contributions = tensors.iter().zip(updates).map(|(tensors, (_, loss))| Contribution {
-            tensors,
-            examples: 1,
-            train_loss: Some(*loss),
-        });
+        let contributions = tensors
+            .iter()
+            .zip(updates)
+            .map(|(tensors, (_, loss))| Contribution { train_loss: Some(*loss), ..(tensors, 1).into() });
         aggregate(&QFedAvg { q, lr }, &one(global), contributions).map(|s| s.global.get("w").unwrap().values.clone())
     }
 

@@ -51,7 +51,7 @@ impl Bulyan {
 
 impl Strategy for Bulyan {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams { name: "bulyan".into(), proximal_mu: 0.0 }
+        StrategyParams::plain("bulyan")
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
@@ -62,7 +62,7 @@ impl Strategy for Bulyan {
 impl Strategy for Krum {
     fn client_params(&self) -> StrategyParams {
         let name = if self.keep == 1 { "krum" } else { "multi-krum" };
-        StrategyParams { name: name.into(), proximal_mu: 0.0 }
+        StrategyParams::plain(name)
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
@@ -72,7 +72,7 @@ impl Strategy for Krum {
 
 impl Strategy for FedMedian {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams { name: "median".into(), proximal_mu: 0.0 }
+        StrategyParams::plain("median")
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
@@ -82,7 +82,7 @@ impl Strategy for FedMedian {
 
 impl Strategy for FedTrimmedAvg {
     fn client_params(&self) -> StrategyParams {
-        StrategyParams { name: "trimmed-mean".into(), proximal_mu: 0.0 }
+        StrategyParams::plain("trimmed-mean")
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {

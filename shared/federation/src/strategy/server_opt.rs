@@ -62,10 +62,6 @@ impl FedAdaptive {
     }
 }
 
-fn fedavg_params(name: &str) -> StrategyParams {
-    StrategyParams { name: name.into(), proximal_mu: 0.0 }
-}
-
 /// `state`'s tensor `key`, or `fill` of `global`'s tensor `name`'s length when the state has none yet.
 fn moment(state: &NamedTensors, key: &str, len: usize, fill: f64) -> Vec<f64> {
     state.get(key).map_or_else(|| vec![fill; len], |t| t.values.iter().map(|&v| f64::from(v)).collect())
@@ -73,7 +69,7 @@ fn moment(state: &NamedTensors, key: &str, len: usize, fill: f64) -> Vec<f64> {
 
 impl Strategy for FedAvgM {
     fn client_params(&self) -> StrategyParams {
-        fedavg_params("fedavgm")
+        StrategyParams::plain("fedavgm")
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
@@ -107,7 +103,7 @@ impl Strategy for FedAvgM {
 
 impl Strategy for FedAdaptive {
     fn client_params(&self) -> StrategyParams {
-        fedavg_params(self.name())
+        StrategyParams::plain(self.name())
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {

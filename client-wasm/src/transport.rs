@@ -59,39 +59,37 @@ impl ClientTransport for BrowserTransport {
 
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
         let url = self.url(&routes::correction(round));
-        let response = gloo_net::http::Request::get(&url)
+        let request = gloo_net::http::Request::get(&url)
             .header("authorization", &format!("Bearer {session}"))
-            .send()
-            .await
-            .map_err(|e| format!("GET {url}: {e}"))?;
-        if !response.ok() {
-            return Err(
-                format!("GET {url}: {} {}", response.status(), response.text().await.unwrap_or_default()).into()
-            );
-        }
-        response.binary().await.map_err(|e| format!("GET {url}: {e}").into())
+            .build()
+            .map_err(|e| e.to_string())?;
+        let what = format!("GET {url}");
+        let response = send_checked(request, &what).await?;
+        response.binary().await.map_err(|e| format!("{what}: {e}").into())
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
         let url = self.url(&routes::rollout_video(round, &video.file_name));
         let body = js_sys::Uint8Array::from(video.bytes.as_slice());
-        let response = gloo_net::http::Request::post(&url)
+        let request = gloo_net::http::Request::post(&url)
             .header("authorization", &format!("Bearer {session}"))
             .header("content-type", &video.mime)
             .body(body)
-            .map_err(|e| e.to_string())?
-            .send()
-            .await
-            .map_err(|e| format!("POST {url}: {e}"))?;
-        if !response.ok() {
-            return Err(
-                format!("POST {url}: {} {}", response.status(), response.text().await.unwrap_or_default()).into()
-            );
-        }
-        Ok(())
+            .map_err(|e| e.to_string())?;
+        send_checked(request, &format!("POST {url}")).await.map(drop)
     }
 
     fn now_seconds(&self) -> f64 {
         now_seconds()
     }
+}
+
+/// Sends `request`; a failure or an answer other than 2xx is an error naming `what` (method and URL), with the
+/// status and the server's message.
+async fn send_checked(request: gloo_net::http::Request, what: &str) -> Result<gloo_net::http::Response, BoxError> {
+    let response = request.send().await.map_err(|e| format!("{what}: {e}"))?;
+    if !response.ok() {
+        return Err(format!("{what}: {} {}", response.status(), response.text().await.unwrap_or_default()).into());
+    }
+    Ok(response)
 }

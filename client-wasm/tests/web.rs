@@ -11,6 +11,9 @@ use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
 use fedvla_sim::{Camera, Expert, Scene, render};
 use wasm_bindgen_test::*;
 
+#[path = "../../shared/policy/tests/rules/mod.rs"]
+mod rules;
+
 wasm_bindgen_test_configure!(run_in_browser);
 
 #[wasm_bindgen_test]
@@ -77,52 +80,11 @@ fn tiny_smolvla_trains_on_the_cpu_backend_in_wasm() {
     }
 }
 
-/// The browser's trainer applies FedProx's proximal term and SCAFFOLD's correction by the rules the native tests
-/// check (shared/policy/tests/training.rs): the gradient gains exactly `mu * (w - w0)`, and a corrected step
-/// moves every trainable tensor by exactly `lr * correction` more than the plain one.
+/// The browser's trainer applies FedProx's proximal term and SCAFFOLD's correction by the very checks the native
+/// tests run (shared/policy/tests/rules).
 #[wasm_bindgen_test]
 fn fedprox_and_scaffold_shape_the_steps_in_wasm_as_natively() {
-    let cfg = SmolVlaConfig::tiny();
-    let anchor = init_random(&cfg.param_specs(), 1);
     let device = Device::flex().autodiff();
-    let batch = Batch::random(&cfg, 2, 3);
-    // Other weights for the trainable tensors: the proximal term's distance, then SCAFFOLD's correction.
-    let trainable: fedvla_policy::WeightMap = {
-        let names: std::collections::BTreeSet<String> =
-            cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
-        init_random(&cfg.param_specs(), 2).into_iter().filter(|(k, _)| names.contains(k)).collect()
-    };
-    let close = |a: f32, b: f32, what: &str| assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{what}: {a} != {b}");
-
-    let gradients = |mu: f64| {
-        let mut trainer = Trainer::new(&cfg, &anchor, &device, 5).unwrap();
-        trainer.set_proximal(mu);
-        trainer.set_trainable_weights(&trainable).unwrap();
-        let (noise, time) = trainer.sample_noise_and_time(2);
-        trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap().1
-    };
-    let (plain, mu) = (gradients(0.0), 0.25);
-    let proximal = gradients(mu);
-    for (name, g) in &plain {
-        let (w, w0) = (&trainable[name].data, &anchor[name].data);
-        for (i, (with, without)) in proximal[name].data.iter().zip(&g.data).enumerate() {
-            close(*with, without + (mu as f32) * (w[i] - w0[i]), name);
-        }
-    }
-
-    let step = |correction: Option<&fedvla_policy::WeightMap>| {
-        let mut trainer = Trainer::new(&cfg, &anchor, &device, 5).unwrap();
-        trainer.set_correction(correction).unwrap();
-        let (noise, time) = trainer.sample_noise_and_time(2);
-        trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap();
-        trainer.trainable_weights()
-    };
-    let without = step(None);
-    let with = step(Some(&trainable));
-    for (name, p) in &without {
-        let c = &trainable[name].data;
-        for (i, (&a, &b)) in with[name].data.iter().zip(&p.data).enumerate() {
-            close(a, b - 1e-3 * c[i], name);
-        }
-    }
+    rules::proximal_term_adds_mu_times_the_distance_from_the_anchor(&device);
+    rules::a_correction_shifts_the_step_by_lr_times_itself(&device);
 }

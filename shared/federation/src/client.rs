@@ -373,20 +373,21 @@ impl<T: ClientTransport> Link<'_, T> {
     async fn fetch_model(&mut self, version: u64) -> Result<NamedTensors, ClientError> {
         let bytes = self.transport.fetch_model(version).await.map_err(ClientError::Transport)?;
         self.bytes_down += bytes.len() as u64;
-        let tensors =
-            NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Model { version, source })?;
-        tensors.validate(&tensors.spec()).map_err(|source| ClientError::Model { version, source })?;
-        Ok(tensors)
+        checked_tensors(&bytes).map_err(|source| ClientError::Model { version, source })
     }
 
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<NamedTensors, ClientError> {
         let bytes = self.transport.fetch_correction(round, session).await.map_err(ClientError::Transport)?;
         self.bytes_down += bytes.len() as u64;
-        let tensors =
-            NamedTensors::from_safetensors(&bytes).map_err(|source| ClientError::Correction { round, source })?;
-        tensors.validate(&tensors.spec()).map_err(|source| ClientError::Correction { round, source })?;
-        Ok(tensors)
+        checked_tensors(&bytes).map_err(|source| ClientError::Correction { round, source })
     }
+}
+
+/// Downloaded safetensors bytes as tensors, every value checked (finite, lengths matching shapes).
+fn checked_tensors(bytes: &[u8]) -> Result<NamedTensors, TensorError> {
+    let tensors = NamedTensors::from_safetensors(bytes)?;
+    tensors.validate(&tensors.spec())?;
+    Ok(tensors)
 }
 
 #[cfg(test)]

@@ -5,6 +5,8 @@ use fedvla_policy::batch::Prepared;
 use fedvla_policy::weights::init_random;
 use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
 
+mod rules;
+
 #[test]
 fn tiny_model_loss_drops_tenfold_in_200_steps_and_frozen_weights_stay_bit_identical() {
     let cfg = SmolVlaConfig::tiny();
@@ -36,37 +38,10 @@ fn tiny_model_loss_drops_tenfold_in_200_steps_and_frozen_weights_stay_bit_identi
     }
 }
 
-/// FedProx: with the proximal term the gradient of every trainable tensor gains exactly `mu * (w - w0)`, `w0`
-/// the weights when it was set; without it (mu = 0) nothing changes.
+/// FedProx's term, by [`rules::proximal_term_adds_mu_times_the_distance_from_the_anchor`].
 #[test]
 fn the_proximal_term_adds_mu_times_the_distance_from_the_anchor_to_every_gradient() {
-    let cfg = SmolVlaConfig::tiny();
-    let anchor = init_random(&cfg.param_specs(), 1);
-    let moved = init_random(&cfg.param_specs(), 2);
-    let trainable: fedvla_policy::WeightMap = {
-        let names: std::collections::BTreeSet<String> =
-            cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
-        moved.into_iter().filter(|(k, _)| names.contains(k)).collect()
-    };
-    let device = Device::flex().autodiff();
-    let batch = Batch::random(&cfg, 2, 3);
-    let gradients = |mu: f64| {
-        let mut trainer = Trainer::new(&cfg, &anchor, &device, 5).unwrap();
-        trainer.set_proximal(mu);
-        trainer.set_trainable_weights(&trainable).unwrap();
-        let (noise, time) = trainer.sample_noise_and_time(2);
-        trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap().1
-    };
-    let (plain, off, mu) = (gradients(0.0), gradients(0.0), 0.25);
-    let proximal = gradients(mu);
-    assert_eq!(plain, off);
-    for (name, g) in &plain {
-        let (w, w0) = (&trainable[name].data, &anchor[name].data);
-        for (i, (with, without)) in proximal[name].data.iter().zip(&g.data).enumerate() {
-            let expected = without + (mu as f32) * (w[i] - w0[i]);
-            assert!((with - expected).abs() <= 1e-5 * (1.0 + expected.abs()), "{name}[{i}]: {with} != {expected}");
-        }
-    }
+    rules::proximal_term_adds_mu_times_the_distance_from_the_anchor(&Device::flex().autodiff());
 }
 
 /// A shard stores every task padded to `tokenizer_max_length`; with `pad_language_to = "longest"` the model reads
@@ -137,40 +112,8 @@ fn new_weights_keep_the_optimizer_state_until_it_is_reset() {
     assert_eq!(step_from(&mut trainer), first_step);
 }
 
-/// SCAFFOLD's correction: with it, a step moves every trainable tensor by exactly `lr * correction` more than
-/// AdamW's step from the same state on the same batch; a correction that misses a trainable tensor is refused.
+/// SCAFFOLD's correction, by [`rules::a_correction_shifts_the_step_by_lr_times_itself`].
 #[test]
 fn a_correction_shifts_each_step_by_lr_times_itself() {
-    let cfg = SmolVlaConfig::tiny();
-    let weights = init_random(&cfg.param_specs(), 1);
-    let device = Device::flex().autodiff();
-    let batch = Batch::random(&cfg, 2, 3);
-    let step = |correction: Option<&fedvla_policy::WeightMap>| {
-        let mut trainer = Trainer::new(&cfg, &weights, &device, 5).unwrap();
-        trainer.set_correction(correction).unwrap();
-        let (noise, time) = trainer.sample_noise_and_time(2);
-        trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap();
-        trainer.trainable_weights()
-    };
-    let plain = step(None);
-    let correction = init_random(&cfg.param_specs(), 9)
-        .into_iter()
-        .filter(|(k, _)| plain.contains_key(k))
-        .collect::<fedvla_policy::WeightMap>();
-    let corrected = step(Some(&correction));
-    for (name, p) in &plain {
-        let (with, c) = (&corrected[name].data, &correction[name].data);
-        for (i, &without) in p.data.iter().enumerate() {
-            let expected = without - 1e-3 * c[i];
-            assert!(
-                (with[i] - expected).abs() <= 1e-6 * (1.0 + expected.abs()),
-                "{name}[{i}]: {} != {expected}",
-                with[i]
-            );
-        }
-    }
-    let mut partial = correction.clone();
-    partial.pop_first();
-    let mut trainer = Trainer::new(&cfg, &weights, &device, 5).unwrap();
-    assert!(trainer.set_correction(Some(&partial)).is_err());
+    rules::a_correction_shifts_the_step_by_lr_times_itself(&Device::flex().autodiff());
 }

@@ -31,6 +31,8 @@ pub(super) struct Participant {
     /// Who the client is from round to round, for the strategies that keep state per client: its shard, or its
     /// name's hash where it has none.
     key: u64,
+    /// The sum of the learning rates of its task's local steps.
+    lr_sum: f64,
     /// Why the update was left out of the aggregate, when it was.
     pub(super) dropped: Option<String>,
     metrics: Option<RoundMetrics>,
@@ -50,8 +52,6 @@ struct AcceptedUpdate {
 
 pub(super) struct RoundState {
     round: u64,
-    /// The sum of the learning rates of every task's local steps.
-    lr_sum: f64,
     pub(super) participants: BTreeMap<u64, Participant>,
     /// Whether the tasks asked for sim rollouts, which clients run after their held-out evaluation.
     rollouts_requested: bool,
@@ -67,6 +67,7 @@ pub(super) struct RoundUpdate {
     pub train_loss: f64,
     /// See [`Participant`]'s.
     pub key: u64,
+    /// See [`Participant`]'s.
     pub lr_sum: f64,
 }
 
@@ -92,7 +93,7 @@ impl RoundState {
             .filter_map(|(&client_id, p)| {
                 let tensors = p.model.take()?;
                 let train_loss = p.update.as_ref()?.train_loss;
-                let (examples, key, lr_sum) = (p.examples, p.key, self.lr_sum);
+                let (examples, key, lr_sum) = (p.examples, p.key, p.lr_sum);
                 Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples, train_loss, key, lr_sum }))
             })
             .collect();
@@ -139,14 +140,13 @@ impl Running {
         let version = self.c.global_version();
         let mut participants = BTreeMap::new();
         let mut rollouts_requested = false;
-        let mut lr_sum = 0.0;
         for i in picked {
             let (name, client_id) = pool[i];
             let client = &self.clients[&client_id];
             let evaluates = round.is_multiple_of(cfg.eval_every);
-            // A shard's own layouts: a volunteer without one gets a block by its name.
-            let block = client.shard.map_or(fnv1a(name) % 1_000, |s| s.index as u64);
             let key = client.shard.map_or(fnv1a(name), |s| s.index as u64);
+            // A shard's own layouts: a volunteer without one gets a block by its name.
+            let block = client.shard.map_or(key % 1_000, |s| s.index as u64);
             let strategy = self.c.strategy.lock().expect("strategy lock");
             match strategy.client_correction(key).map(|c| c.to_safetensors()) {
                 Some(Ok(bytes)) => self.c.sessions.offer_correction(client_id, round, bytes.into()),
@@ -186,15 +186,15 @@ impl Running {
             }
             // Weighed by what the server knows the client holds, never by what its update claims.
             let examples = client.shard.map_or(1, |s| s.train_examples);
-            lr_sum = task.lr_sum();
+            let lr_sum = task.lr_sum();
             client.outbox.send(ServerMessage::RoundTask(task)).ok();
             self.observe(RunEvent::ClientState { id: client_id, state: first_step });
-            let participant = Participant { name: name.to_owned(), examples, key, ..Participant::default() };
+            let participant = Participant { name: name.to_owned(), examples, key, lr_sum, ..Participant::default() };
             participants.insert(client_id, participant);
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
         self.observe(RunEvent::RoundStarted { round, attempt, sampled: participants.keys().copied().collect() });
-        RoundState { round, lr_sum, participants, rollouts_requested }
+        RoundState { round, participants, rollouts_requested }
     }
 
     /// Handles events until every participant is done or the deadline passes.

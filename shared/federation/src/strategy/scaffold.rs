@@ -18,13 +18,56 @@ use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
-/// State keys: `c/<tensor>` for the server's variate, `client/<client>/<tensor>` for each client's.
-const SERVER_PREFIX: &str = "c/";
-const CLIENT_PREFIX: &str = "client/";
+/// Where one server-wide set of tensors and one set per client live among named tensors: `<server><tensor>` and
+/// `<client><client id>/<tensor>`.
+#[derive(Clone, Copy)]
+struct Layout {
+    server: &'static str,
+    client: &'static str,
+}
+
+/// The saved state: `c` and each client's `c_i`.
+const STATE: Layout = Layout { server: "c/", client: "client/" };
 /// Reserved names in the aggregate, from the round to [`Strategy::step`]: the mean of `c_i+ - c_i`, and each
 /// client's new variate.
-const MEAN_CHANGE_PREFIX: &str = "scaffold/dc/";
-const NEW_VARIATE_PREFIX: &str = "scaffold/client/";
+const ROUND: Layout = Layout { server: "scaffold/dc/", client: "scaffold/client/" };
+
+impl Layout {
+    /// Writes `server` and `clients` into `out`.
+    fn pack<'a>(
+        self,
+        out: &mut NamedTensors,
+        server: &NamedTensors,
+        clients: impl IntoIterator<Item = (u64, &'a NamedTensors)>,
+    ) {
+        for (name, t) in server.iter() {
+            out.insert(format!("{}{name}", self.server), t.shape.clone(), t.values.clone()).expect("a tensor's shape");
+        }
+        for (client, tensors) in clients {
+            for (name, t) in tensors.iter() {
+                let key = format!("{}{client}/{name}", self.client);
+                out.insert(key, t.shape.clone(), t.values.clone()).expect("a tensor's shape");
+            }
+        }
+    }
+
+    /// What [`Layout::pack`] wrote into `tensors` (other names are left alone).
+    fn unpack(self, tensors: &NamedTensors) -> (NamedTensors, BTreeMap<u64, NamedTensors>) {
+        let mut server = NamedTensors::new();
+        let mut clients: BTreeMap<u64, NamedTensors> = BTreeMap::new();
+        for (name, t) in tensors.iter() {
+            let (into, tensor) = if let Some(tensor) = name.strip_prefix(self.server) {
+                (&mut server, tensor)
+            } else if let Some((client, tensor)) = name.strip_prefix(self.client).and_then(split_client) {
+                (clients.entry(client).or_default(), tensor)
+            } else {
+                continue;
+            };
+            into.insert(tensor, t.shape.clone(), t.values.clone()).expect("a tensor's shape");
+        }
+        (server, clients)
+    }
+}
 
 pub struct Scaffold {
     pub server_lr: f64,
@@ -59,17 +102,9 @@ impl Strategy for Scaffold {
     }
 
     fn step(&self, global: &NamedTensors, aggregate: NamedTensors) -> Result<Step, AggregateError> {
-        let mut new_variates: BTreeMap<u64, NamedTensors> = BTreeMap::new();
-        let mut mean_variate_change = NamedTensors::new();
-        for (name, t) in aggregate.iter() {
-            if let Some(tensor) = name.strip_prefix(MEAN_CHANGE_PREFIX) {
-                mean_variate_change.insert(tensor, t.shape.clone(), t.values.clone()).expect("a tensor's shape");
-            } else if let Some((client, tensor)) = name.strip_prefix(NEW_VARIATE_PREFIX).and_then(split_client) {
-                new_variates.entry(client).or_default().insert(tensor, t.shape.clone(), t.values.clone()).ok();
-            }
-        }
+        let (mean_variate_change, new_variates) = ROUND.unpack(&aggregate);
         let mut next = NamedTensors::new();
-        let mut state = NamedTensors::new();
+        let mut control = NamedTensors::new();
         let share = new_variates.len() as f64 / self.clients.max(new_variates.len()) as f64;
         for (name, x) in global.iter() {
             let mean = &aggregate.get(name).expect("the round's mean of the global model's tensors").values;
@@ -82,43 +117,25 @@ impl Strategy for Scaffold {
             let dc = &mean_variate_change.get(name).expect("the round's mean variate change").values;
             let c = self.control.get(name).map(|t| t.values.as_slice());
             let c_next = (0..dc.len()).map(|k| (c.map_or(0.0, |c| f64::from(c[k])) + share * f64::from(dc[k])) as f32);
-            state.insert(format!("{SERVER_PREFIX}{name}"), x.shape.clone(), c_next.collect()).expect("global shape");
+            control.insert(name, x.shape.clone(), c_next.collect()).expect("global shape");
         }
-        let old = self.variates.iter().map(|(&client, v)| (client, v.as_ref()));
-        let mut variates: BTreeMap<u64, &NamedTensors> = old.collect();
+        let mut variates: BTreeMap<u64, &NamedTensors> =
+            self.variates.iter().map(|(&client, v)| (client, v.as_ref())).collect();
         variates.extend(new_variates.iter().map(|(&client, v)| (client, v)));
-        for (client, variate) in variates {
-            for (name, t) in variate.iter() {
-                state.insert(format!("{CLIENT_PREFIX}{client}/{name}"), t.shape.clone(), t.values.clone()).ok();
-            }
-        }
+        let mut state = NamedTensors::new();
+        STATE.pack(&mut state, &control, variates);
         Ok(Step { global: next, state })
     }
 
     fn commit(&mut self, state: NamedTensors) {
-        let mut control = NamedTensors::new();
-        let mut variates: BTreeMap<u64, NamedTensors> = BTreeMap::new();
-        for (name, t) in state.iter() {
-            if let Some(tensor) = name.strip_prefix(SERVER_PREFIX) {
-                control.insert(tensor, t.shape.clone(), t.values.clone()).ok();
-            } else if let Some((client, tensor)) = name.strip_prefix(CLIENT_PREFIX).and_then(split_client) {
-                variates.entry(client).or_default().insert(tensor, t.shape.clone(), t.values.clone()).ok();
-            }
-        }
+        let (control, variates) = STATE.unpack(&state);
         self.control = Arc::new(control);
         self.variates = variates.into_iter().map(|(client, v)| (client, Arc::new(v))).collect();
     }
 
     fn state(&self) -> NamedTensors {
         let mut state = NamedTensors::new();
-        for (name, t) in self.control.iter() {
-            state.insert(format!("{SERVER_PREFIX}{name}"), t.shape.clone(), t.values.clone()).ok();
-        }
-        for (client, variate) in &self.variates {
-            for (name, t) in variate.iter() {
-                state.insert(format!("{CLIENT_PREFIX}{client}/{name}"), t.shape.clone(), t.values.clone()).ok();
-            }
-        }
+        STATE.pack(&mut state, &self.control, self.variates.iter().map(|(&client, v)| (client, v.as_ref())));
         state
     }
 
@@ -191,20 +208,16 @@ impl Aggregation for ScaffoldRound {
         if n == 0 {
             return Err(AggregateError::NoUpdates);
         }
-        let mut out = NamedTensors::new();
+        let (mut out, mut mean_variate_change) = (NamedTensors::new(), NamedTensors::new());
         for (((name, x), change), variate_change) in
             self.global.iter().zip(self.sum_change).zip(self.sum_variate_change)
         {
             let mean = x.values.iter().zip(change).map(|(&x, d)| (f64::from(x) + d / n as f64) as f32);
             out.insert(name, x.shape.clone(), mean.collect()).expect("global shape");
             let dc = variate_change.into_iter().map(|d| (d / n as f64) as f32).collect();
-            out.insert(format!("{MEAN_CHANGE_PREFIX}{name}"), x.shape.clone(), dc).expect("global shape");
+            mean_variate_change.insert(name, x.shape.clone(), dc).expect("global shape");
         }
-        for (client, variate) in self.new_variates {
-            for (name, t) in variate.iter() {
-                out.insert(format!("{NEW_VARIATE_PREFIX}{client}/{name}"), t.shape.clone(), t.values.clone()).ok();
-            }
-        }
+        ROUND.pack(&mut out, &mean_variate_change, self.new_variates.iter().map(|(client, v)| (*client, v)));
         Ok(out)
     }
 }

@@ -1,12 +1,14 @@
-//! Prints the cube's position and grip every few frames of one expert episode, to see where an
-//! episode goes wrong: `cargo run -p fedvla-sim --example trace -- SEED`.
-use fedvla_sim::{Expert, Scene};
+//! Prints the task's cube's position and grip every few frames of one expert episode, to see
+//! where an episode goes wrong: `cargo run -p fedvla-sim --example trace -- SEED [TASK]` (TASK
+//! by name, cube-in-bowl if left out).
+use fedvla_sim::{Expert, Scene, TaskKind};
 
 fn main() {
     let seed: u64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
-    let mut scene = Scene::new(seed);
+    let task = std::env::args().nth(2).map_or(Ok(TaskKind::CubeInBowl), |name| name.parse()).expect("task");
+    let mut scene = Scene::with_task(task, seed);
     let mut expert = Expert::new(&scene);
-    println!("{:?}", scene.layout());
+    println!("{}: {:?}", scene.instruction(), scene.arrangement());
     while !expert.done() {
         let action = expert.act(&scene);
         scene.step(action);

@@ -120,6 +120,11 @@ pub const LINKS: [LinkSpec; LINK_COUNT] = [
 
 /// Inner face of the fixed jaw's finger, along the gripper frame's x axis, metres.
 pub const FIXED_FINGER_FACE_X: f32 = 0.0079;
+/// Thickness of the fixed jaw's finger along the gripper frame's x axis, metres: its outer face
+/// is at `FIXED_FINGER_FACE_X + FIXED_FINGER_THICKNESS`.
+pub const FIXED_FINGER_THICKNESS: f32 = 0.008;
+/// Tip of the fixed jaw's finger along the gripper frame's y axis, metres.
+pub const FINGER_TIP_Y: f32 = -0.106;
 /// Height along the gripper frame's y axis where a cube is held (fingers span -0.055..-0.106).
 pub const GRASP_DEPTH_Y: f32 = -0.085;
 
@@ -241,7 +246,11 @@ pub fn link_parts() -> [Vec<Part>; LINK_COUNT] {
         vec![
             servo(Vec3::new(-0.002, -0.03, 0.0), Vec3::new(0.018, 0.016, 0.016)),
             Part::cuboid(Vec3::new(0.008, -0.05, 0.0), Vec3::new(0.008, 0.006, 0.009), ORANGE),
-            Part::cuboid(Vec3::new(FIXED_FINGER_FACE_X + 0.004, -0.0805, 0.0), Vec3::new(0.004, 0.0255, 0.009), ORANGE),
+            Part::cuboid(
+                Vec3::new(FIXED_FINGER_FACE_X + FIXED_FINGER_THICKNESS * 0.5, -0.0805, 0.0),
+                Vec3::new(FIXED_FINGER_THICKNESS * 0.5, 0.0255, 0.009),
+                ORANGE,
+            ),
         ],
         // Moving jaw, in its own frame (x mirrored): a finger swinging about the jaw axis.
         vec![Part::segment(Vec3::new(-0.008, -0.012, 0.0), Vec3::new(-0.0138, -0.082, 0.0), 0.003, 0.009, ORANGE)],

@@ -1,9 +1,11 @@
-//! Running the scripted expert through whole episodes, for tests, evaluation and data checks.
+//! Running the scripted expert through whole episodes of a task, for tests, evaluation and data
+//! checks.
 
 use crate::arm::JOINT_COUNT;
 use crate::expert::Expert;
 use crate::perturbation::{ActionNoise, Perturbation};
 use crate::scene::Scene;
+use crate::task::TaskKind;
 use rapier3d::math::Vec3;
 
 /// What happened in one expert episode.
@@ -17,7 +19,7 @@ pub struct EpisodeOutcome {
     pub states: Vec<[f32; JOINT_COUNT]>,
     /// The action of every frame (robot units).
     pub actions: Vec<[f32; JOINT_COUNT]>,
-    /// Where the cube ended, metres.
+    /// Where the task's cube ended, metres.
     pub final_cube_position: Vec3,
 }
 
@@ -31,18 +33,30 @@ pub enum ExpertEnd {
     Success,
 }
 
-/// The one expert episode loop: the expert on the scene of `seed`, frame by frame, until `end` or `max_frames`
-/// frames, the arm executing its goals perturbed by `noise` (none: as they are). `on_frame` sees the scene
-/// before each action and the expert's action (unperturbed: what a demonstration records); returns the scene
-/// as it ended.
+/// [`drive_expert_on`] the cube-in-bowl task.
 pub fn drive_expert(
+    seed: u64,
+    end: ExpertEnd,
+    max_frames: u32,
+    noise: ActionNoise,
+    on_frame: impl FnMut(&Scene, &[f32; JOINT_COUNT]),
+) -> Scene {
+    drive_expert_on(TaskKind::CubeInBowl, seed, end, max_frames, noise, on_frame)
+}
+
+/// The one expert episode loop: the expert on the scene of `task` and `seed`, frame by frame, until `end` or
+/// `max_frames` frames, the arm executing its goals perturbed by `noise` (none: as they are). `on_frame` sees the
+/// scene before each action and the expert's action (unperturbed: what a demonstration records); returns the
+/// scene as it ended.
+pub fn drive_expert_on(
+    task: TaskKind,
     seed: u64,
     end: ExpertEnd,
     max_frames: u32,
     noise: ActionNoise,
     mut on_frame: impl FnMut(&Scene, &[f32; JOINT_COUNT]),
 ) -> Scene {
-    let mut scene = Scene::new(seed);
+    let mut scene = Scene::with_task(task, seed);
     let mut expert = Expert::new(&scene);
     let mut perturbation = Perturbation::new(noise, seed);
     while scene.frame() < max_frames {
@@ -60,12 +74,17 @@ pub fn drive_expert(
     scene
 }
 
-/// Runs the expert on the scene of `seed` until its plan is done or `max_frames` pass, executing its goals
-/// perturbed by `noise`.
+/// [`run_expert_episode_on`] the cube-in-bowl task.
 pub fn run_expert_episode(seed: u64, max_frames: u32, noise: ActionNoise) -> EpisodeOutcome {
+    run_expert_episode_on(TaskKind::CubeInBowl, seed, max_frames, noise)
+}
+
+/// Runs the expert on the scene of `task` and `seed` until its plan is done or `max_frames` pass, executing its
+/// goals perturbed by `noise`.
+pub fn run_expert_episode_on(task: TaskKind, seed: u64, max_frames: u32, noise: ActionNoise) -> EpisodeOutcome {
     let mut states = Vec::new();
     let mut actions = Vec::new();
-    let scene = drive_expert(seed, ExpertEnd::PlanDone, max_frames, noise, |scene, action| {
+    let scene = drive_expert_on(task, seed, ExpertEnd::PlanDone, max_frames, noise, |scene, action| {
         states.push(scene.state());
         actions.push(*action);
     });

@@ -1,10 +1,14 @@
-//! The scripted expert that demonstrates the task: a fixed sequence of gripper waypoints
-//! (above the cube, descend, close, lift, over the bowl, lower, open, retreat) followed by
-//! damped-least-squares inverse kinematics, one goal per control frame.
+//! The scripted expert that demonstrates every task: a sequence of waypoints for one point of
+//! the gripper, followed by damped-least-squares inverse kinematics, one goal per control
+//! frame. Picking tasks (the bowl, the stack) go above the cube, descend, close, lift, go over
+//! the place, lower, open and retreat; pushing goes down behind the cube, along the line to the
+//! target, back and up.
 
-use crate::arm::{self, GRIPPER, GRIPPER_LINK, JOINT_COUNT};
+use crate::arm::{self, FINGER_TIP_Y, FIXED_FINGER_FACE_X, FIXED_FINGER_THICKNESS, GRIPPER, GRIPPER_LINK, JOINT_COUNT};
+use crate::arrangement::PUSH_APPROACH;
+use crate::goal::Goal;
 use crate::ik::{self, GripperTarget};
-use crate::scene::Scene;
+use crate::scene::{FPS, Scene};
 use crate::task::CUBE_HALF;
 use rapier3d::math::{Mat3, Pose, Rot3, Vec3};
 use std::f32::consts::{FRAC_PI_2, PI, TAU};
@@ -19,14 +23,30 @@ const GRASP_ABOVE_CENTER: f32 = 0.006;
 const HOVER_HEIGHT: f32 = 0.09;
 /// Height of the grasp point when the cube is let go over the bowl, metres.
 const RELEASE_HEIGHT: f32 = 0.045;
+/// How far above the lower cube's top a stacked cube is let go, metres.
+const STACK_DROP: f32 = 0.003;
+/// How far the fixed finger backs off a stacked cube before the gripper lifts, metres: lifted
+/// straight up, the finger's friction would drag the cube off the stack (in the bowl the cube
+/// drops clear of it).
+const STACK_BACK_OFF: f32 = 0.006;
 /// Height of the grasp point at the end, metres.
 const RETREAT_HEIGHT: f32 = 0.13;
 /// Gripper goals, robot units (0 closed .. 100 open). Closing towards 0 makes the jaw stall
 /// on the cube.
 const GRIPPER_OPEN: f32 = 40.0;
 const GRIPPER_CLOSED: f32 = 0.0;
+/// Height of the pushing point over the table, metres: the finger's tip skims the table and
+/// its face covers the cube's side.
+const PUSH_HEIGHT: f32 = 0.01;
+/// How far above the finger's tip the pushing point is, metres.
+const PUSH_ABOVE_TIP: f32 = 0.008;
+/// Average speed of the pushing finger along its stroke, m/s: a stroke takes two to four
+/// seconds.
+const PUSH_SPEED: f32 = 0.03;
+/// How far the finger backs off the pushed cube before it lifts, metres.
+const PUSH_BACK_OFF: f32 = 0.01;
 
-/// One point of the plan: where the grasp point goes, how the jaw is turned, what the gripper
+/// One point of the plan: where the tool point goes, how the jaw is turned, what the gripper
 /// is told, and in how many frames it gets there from the previous point.
 #[derive(Clone, Copy, Debug)]
 struct Waypoint {
@@ -37,8 +57,25 @@ struct Waypoint {
     frames: u32,
 }
 
-/// Index of the waypoint that ends the lift: if the cube is not held by then, the grasp
-/// missed and the expert plans again from where things are.
+impl Waypoint {
+    fn new(position: Vec3, closing_yaw: f32, gripper: f32, frames: u32) -> Self {
+        Self { position, closing_yaw, gripper, frames }
+    }
+}
+
+/// A demonstration as planned from one moment of the episode.
+#[derive(Clone, Debug)]
+struct Plan {
+    /// The point of the gripper frame the waypoints lead: between the jaws for picking, a face
+    /// of the fixed finger for pushing.
+    tool_point: Vec3,
+    waypoints: Vec<Waypoint>,
+    /// For a plan that grasps, the index of the waypoint that ends the lift: if the task's cube
+    /// is not held by then, the grasp missed and the expert plans again from where things are.
+    lifted: Option<usize>,
+}
+
+/// Index of the waypoint that ends the lift in a picking plan.
 const LIFTED: usize = 4;
 /// How many times a missed grasp is tried again.
 const MAX_RETRIES: u32 = 2;
@@ -47,31 +84,23 @@ const MAX_RETRIES: u32 = 2;
 #[derive(Clone, Debug)]
 pub struct Expert {
     base: Pose,
-    grasp_point: Vec3,
-    waypoints: Vec<Waypoint>,
+    plan: Plan,
     frame: u32,
     joints: [f32; JOINT_COUNT],
     retries: u32,
 }
 
 impl Expert {
-    /// Plans the demonstration from the current arm pose and the cube and bowl positions.
+    /// Plans the demonstration of the scene's task from the current arm pose and the objects
+    /// on the table.
     pub fn new(scene: &Scene) -> Self {
         let joints = scene.joint_positions();
-        let grasp_point = arm::grasp_point(CUBE_HALF + FINGER_CLEARANCE);
-        Self {
-            base: scene.base_pose(),
-            grasp_point,
-            waypoints: plan(scene, &joints, grasp_point),
-            frame: 0,
-            joints,
-            retries: 0,
-        }
+        Self { base: scene.base_pose(), plan: plan(scene, &joints), frame: 0, joints, retries: 0 }
     }
 
     /// Frames the whole demonstration takes (as planned now; a retry adds a new plan).
     pub fn planned_frames(&self) -> u32 {
-        self.waypoints.iter().map(|w| w.frames).sum()
+        self.plan.waypoints.iter().map(|w| w.frames).sum()
     }
 
     /// Whether the plan has been played to its end.
@@ -83,16 +112,19 @@ impl Expert {
     /// control frame. Watches `scene` for a missed grasp; after the end of the plan it keeps
     /// holding the final pose.
     pub fn act(&mut self, scene: &Scene) -> [f32; JOINT_COUNT] {
-        let lifted_at: u32 = self.waypoints[..=LIFTED].iter().map(|w| w.frames).sum();
-        if self.frame == lifted_at && !scene.cube_gripped() && self.retries < MAX_RETRIES {
-            self.retries += 1;
-            self.waypoints = plan(scene, &self.joints, self.grasp_point);
-            self.frame = 0;
+        if let Some(lifted) = self.plan.lifted {
+            let lifted_at: u32 = self.plan.waypoints[..=lifted].iter().map(|w| w.frames).sum();
+            let holding = scene.held_cube() == Some(scene.arrangement().subject);
+            if self.frame == lifted_at && !holding && self.retries < MAX_RETRIES {
+                self.retries += 1;
+                self.plan = plan(scene, &self.joints);
+                self.frame = 0;
+            }
         }
         self.frame = (self.frame + 1).min(self.planned_frames());
         let waypoint = self.waypoint_at(self.frame);
         let target = GripperTarget {
-            point: self.grasp_point,
+            point: self.plan.tool_point,
             position: waypoint.position,
             orientation: pointing_down(waypoint.closing_yaw),
         };
@@ -104,8 +136,9 @@ impl Expert {
 
     /// The plan interpolated at `frame`: smooth in position and yaw, linear in gripper.
     fn waypoint_at(&self, frame: u32) -> Waypoint {
+        let waypoints = &self.plan.waypoints;
         let mut elapsed = 0;
-        for pair in self.waypoints.windows(2) {
+        for pair in waypoints.windows(2) {
             let (from, to) = (pair[0], pair[1]);
             if frame <= elapsed + to.frames {
                 let t = (frame - elapsed) as f32 / to.frames as f32;
@@ -119,53 +152,158 @@ impl Expert {
             }
             elapsed += to.frames;
         }
-        self.waypoints[self.waypoints.len() - 1]
+        waypoints[waypoints.len() - 1]
     }
 }
 
-/// Waypoints from the arm at `joints` (radians) to the cube in the bowl, for the grasp point
-/// `grasp_point` (gripper frame).
-fn plan(scene: &Scene, joints: &[f32; JOINT_COUNT], grasp_point: Vec3) -> Vec<Waypoint> {
-    let links = arm::forward_kinematics(scene.base_pose(), joints);
-    let gripper = links[GRIPPER_LINK];
-    let pan_axis = links[1].translation;
-    let start_yaw = yaw_of(gripper.rotation * Vec3::X);
+/// The plan for the scene's task from the arm at `joints` (radians).
+fn plan(scene: &Scene, joints: &[f32; JOINT_COUNT]) -> Plan {
+    let arm = ArmAtStart::new(scene, joints);
+    match scene.arrangement().goal {
+        Goal::InBowl { bowl } => pick_and_place(scene, &arm, Place::InBowl(bowl)),
+        Goal::OnCube { base } => pick_and_place(scene, &arm, Place::OnCube(scene.cube_pose_at(base))),
+        Goal::OnTarget { target } => push(scene, &arm, target),
+    }
+}
 
+/// Where a picked cube is let go.
+#[derive(Clone, Copy, Debug)]
+enum Place {
+    /// In the bowl whose base is centred here.
+    InBowl(Vec3),
+    /// On top of the cube standing at this pose.
+    OnCube(Pose),
+}
+
+/// The arm as a plan starts from it.
+struct ArmAtStart {
+    gripper: Pose,
+    pan_axis: Vec3,
+    pan: f32,
+    /// Direction in which the jaw closes now, radians.
+    closing_yaw: f32,
+    /// The gripper's position, robot units.
+    gripper_opening: f32,
+}
+
+impl ArmAtStart {
+    fn new(scene: &Scene, joints: &[f32; JOINT_COUNT]) -> Self {
+        let links = arm::forward_kinematics(scene.base_pose(), joints);
+        let gripper = links[GRIPPER_LINK];
+        Self {
+            gripper,
+            pan_axis: links[1].translation,
+            pan: joints[0],
+            closing_yaw: yaw_of(gripper.rotation * Vec3::X),
+            gripper_opening: scene.state()[GRIPPER],
+        }
+    }
+
+    /// The jaw's closing direction when the arm turns to face `p` without rolling the wrist:
+    /// plans keep the jaw's yaw near it, for the wrist's roll stays far from its limits there.
+    fn facing(&self, p: Vec3) -> f32 {
+        self.closing_yaw - self.pan + (p.x - self.pan_axis.x).atan2(self.pan_axis.y - p.y)
+    }
+
+    /// The first waypoint of a plan leading `tool_point`: where it is now.
+    fn waypoint(&self, tool_point: Vec3) -> Waypoint {
+        Waypoint::new(self.gripper.transform_point(tool_point), self.closing_yaw, self.gripper_opening, 0)
+    }
+}
+
+/// Picks the task's cube and lets it go at `place`; on a cube, with the faces of both turned
+/// the same way.
+fn pick_and_place(scene: &Scene, arm: &ArmAtStart, place: Place) -> Plan {
+    let grasp_point = arm::grasp_point(CUBE_HALF + FINGER_CLEARANCE);
     let cube = scene.cube_pose();
     let cube_yaw = yaw_of(cube.rotation * Vec3::X);
-    let bowl = scene.layout().bowl_position;
-    // The jaw's closing direction when the arm turns to face a point without rolling the
-    // wrist; the grasp picks the cube face nearest to it to keep the roll small.
-    let facing = |p: Vec3| start_yaw - joints[0] + (p.x - pan_axis.x).atan2(pan_axis.y - p.y);
-    let natural = facing(cube.translation);
-    let grasp_yaw = (0..4)
-        .map(|k| cube_yaw + k as f32 * FRAC_PI_2)
-        .min_by(|a, b| angle_between(*a, natural).total_cmp(&angle_between(*b, natural)))
-        .unwrap_or(natural);
-    let release_yaw = grasp_yaw - natural + facing(bowl);
-    let grasp_z = cube.translation.z + GRASP_ABOVE_CENTER;
-    let over = |p: Vec3, z: f32| Vec3::new(p.x, p.y, z);
-
-    let start = Waypoint {
-        position: gripper.transform_point(grasp_point),
-        closing_yaw: start_yaw,
-        gripper: scene.state()[GRIPPER],
-        frames: 0,
+    // The grasp picks the cube face nearest to the natural closing direction to keep the roll
+    // small.
+    let natural = arm.facing(cube.translation);
+    let grasp_yaw = nearest_face(cube_yaw, natural);
+    // The jaw's yaw over `p`, turned with the arm from the grasp.
+    let turned = |p: Vec3| grasp_yaw - natural + arm.facing(p);
+    // Where the grasp point lets go, and the jaw's yaw there.
+    let (release, release_yaw) = match place {
+        Place::InBowl(bowl) => (over(bowl, RELEASE_HEIGHT), turned(bowl)),
+        Place::OnCube(below) => {
+            let release = below.translation + Vec3::Z * (2.0 * CUBE_HALF + GRASP_ABOVE_CENTER + STACK_DROP);
+            (release, nearest_face(yaw_of(below.rotation * Vec3::X), turned(below.translation)))
+        }
     };
-    let at = |position, closing_yaw, gripper, frames| Waypoint { position, closing_yaw, gripper, frames };
-    vec![
-        start,
+    let grasp_z = cube.translation.z + GRASP_ABOVE_CENTER;
+    let at = Waypoint::new;
+    let mut waypoints = vec![
+        arm.waypoint(grasp_point),
         at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_OPEN, 45),
         at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_OPEN, 30),
         at(over(cube.translation, grasp_z), grasp_yaw, GRIPPER_CLOSED, 18),
         at(over(cube.translation, HOVER_HEIGHT), grasp_yaw, GRIPPER_CLOSED, 25),
-        at(over(bowl, HOVER_HEIGHT), release_yaw, GRIPPER_CLOSED, 40),
-        at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_CLOSED, 18),
-        at(over(bowl, RELEASE_HEIGHT), release_yaw, GRIPPER_OPEN, 12),
-        at(over(bowl, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 20),
+        at(over(release, HOVER_HEIGHT), release_yaw, GRIPPER_CLOSED, 40),
+        at(over(release, release.z), release_yaw, GRIPPER_CLOSED, 18),
+        at(over(release, release.z), release_yaw, GRIPPER_OPEN, 12),
+    ];
+    let mut retreat = release;
+    if let Place::OnCube(_) = place {
+        // The fixed finger lies on the cube's side the jaw closes towards.
+        retreat += Vec3::new(release_yaw.cos(), release_yaw.sin(), 0.0) * STACK_BACK_OFF;
+        waypoints.push(at(retreat, release_yaw, GRIPPER_OPEN, 8));
+    }
+    waypoints.extend([
+        at(over(retreat, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 20),
         // Hold still while the cube settles.
-        at(over(bowl, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 6),
-    ]
+        at(over(retreat, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 6),
+    ]);
+    Plan { tool_point: grasp_point, waypoints, lifted: Some(LIFTED) }
+}
+
+/// Pushes the task's cube to `target` with a face of the fixed finger held flat against the
+/// cube's face turned most towards it, the jaw open behind the finger or beyond the cube, and
+/// lifts away. The servos move the finger in a burst each control frame, so each contact kicks
+/// the cube a few millimetres along the contact's normal: the cube goes straight only pushed
+/// face to face, and the arrangement puts the target straight out from a face.
+fn push(scene: &Scene, arm: &ArmAtStart, target: Vec3) -> Plan {
+    let cube = scene.cube_pose();
+    let heading = (target - cube.translation).truncate().normalize_or_zero().extend(0.0);
+    let face_yaw = nearest_face(yaw_of(cube.rotation * Vec3::X), yaw_of(heading));
+    // The finger's outer face pushes towards where the jaw closes, its inner face the other
+    // way: of the two, the one that keeps the jaw's yaw nearer the natural one.
+    let (closing_yaw, face_x) = if angle_between(face_yaw, arm.facing(cube.translation)) <= FRAC_PI_2 {
+        (face_yaw, FIXED_FINGER_FACE_X + FIXED_FINGER_THICKNESS)
+    } else {
+        (wrap(face_yaw + PI), FIXED_FINGER_FACE_X)
+    };
+    let tool_point = Vec3::new(face_x, FINGER_TIP_Y + PUSH_ABOVE_TIP, 0.0);
+    let behind = over(cube.translation - heading * PUSH_APPROACH, PUSH_HEIGHT);
+    // The finger stops where the cube's centre is on the target.
+    let end = over(target - heading * CUBE_HALF, PUSH_HEIGHT);
+    let back = end - heading * PUSH_BACK_OFF;
+    let stroke_frames = ((end - behind).length() / PUSH_SPEED * FPS as f32).ceil() as u32;
+    let at = |position, frames| Waypoint::new(position, closing_yaw, GRIPPER_OPEN, frames);
+    let waypoints = vec![
+        arm.waypoint(tool_point),
+        at(over(behind, HOVER_HEIGHT), 45),
+        at(behind, 30),
+        at(end, stroke_frames),
+        at(back, 10),
+        at(over(back, RETREAT_HEIGHT), 20),
+        // Hold still while the cube settles.
+        at(over(back, RETREAT_HEIGHT), 6),
+    ];
+    Plan { tool_point, waypoints, lifted: None }
+}
+
+/// The point at height `z` above or below `p`.
+fn over(p: Vec3, z: f32) -> Vec3 {
+    Vec3::new(p.x, p.y, z)
+}
+
+/// Of the four directions a cube of yaw `cube_yaw` has its faces along, the nearest to `towards`.
+fn nearest_face(cube_yaw: f32, towards: f32) -> f32 {
+    (0..4)
+        .map(|k| cube_yaw + k as f32 * FRAC_PI_2)
+        .min_by(|a, b| angle_between(*a, towards).total_cmp(&angle_between(*b, towards)))
+        .unwrap_or(towards)
 }
 
 /// Gripper orientation with the fingers pointing straight down and the jaw closing along

@@ -1,12 +1,13 @@
-//! The simulated world: a table, the SO-100 arm driven by its servos, a cube and a bowl, in
-//! rapier3d. One [`Scene::step`] is one 1/30 s control step (LeRobot SO-100 data is 30 fps)
-//! made of several physics substeps.
+//! The simulated world: a table, the SO-100 arm driven by its servos, and what a task puts on
+//! the table (cubes, and a bowl or a target marker: an [`Arrangement`]), in rapier3d. One
+//! [`Scene::step`] is one 1/30 s control step (LeRobot SO-100 data is 30 fps) made of several
+//! physics substeps; [`Scene::success`] says whether the task is done.
 //!
 //! The arm links are kinematic bodies posed by forward kinematics of the servo positions: the
 //! real arm is position-controlled, so the servo model decides where the links are (each servo
 //! moves towards its goal within its speed and torque limits, against the gravity torque of the
 //! links outboard of its joint and of the cube while it is held; the gripper stalls on the
-//! cube) and the physics decides what the cube does.
+//! cube) and the physics decides what the cubes do.
 //!
 //! Grasping: the closing jaw presses the cube onto the fixed finger until the gripper servo
 //! stalls. A real STS3215 grips with tens of newtons against the cube's 0.08 N weight, so
@@ -15,12 +16,14 @@
 //! joint between gripper and cube that exists only while both fingers press on it; the fixed
 //! finger's contacts with the cube are off while it holds, and the held cube keeps the jaw
 //! from closing further. The cube stays a dynamic body throughout (it hits the bowl, and falls
-//! when the jaw opens).
+//! when the jaw opens). With several cubes on the table the jaw holds the one it presses.
 
 use crate::arm::{self, GRIPPER, GRIPPER_LINK, JAW_LINK, JOINT_COUNT, LINK_COUNT, Payload};
+use crate::arrangement::Arrangement;
+use crate::goal::Goal;
 use crate::servo::Servo;
 use crate::shape::{Part, Rgb};
-use crate::task::{self, BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, Layout};
+use crate::task::{BOWL_FLOOR, BOWL_HEIGHT, BOWL_INNER_RADIUS, CUBE_HALF, TARGET_RADIUS, TaskKind};
 use rapier3d::math::{Pose, Rot3, Vec3};
 use rapier3d::prelude::{
     ColliderHandle, ContactPair, FixedJointBuilder, ImpulseJointHandle, PhysicsWorld, RigidBodyBuilder,
@@ -48,8 +51,12 @@ const TOUCHING: f32 = 0.001;
 pub const HOME: [f32; JOINT_COUNT] = [0.0, -FRAC_PI_2, FRAC_PI_2, FRAC_PI_2, -FRAC_PI_2, 0.0];
 
 const TABLE_COLOR: Rgb = [0.78, 0.72, 0.62];
-const CUBE_COLOR: Rgb = [0.85, 0.08, 0.08];
 const BOWL_COLOR: Rgb = [0.2, 0.45, 0.85];
+/// The target marker: white, apart from the table's beige and every cube's colour.
+const TARGET_COLOR: Rgb = [0.96, 0.96, 0.94];
+/// Thickness of the target marker, metres: paint-thin, yet above the table top for the
+/// renderer's depth test.
+const TARGET_THICKNESS: f32 = 0.001;
 /// Segments of the bowl's wall.
 const BOWL_SEGMENTS: usize = 16;
 const BOWL_WALL: f32 = 0.004;
@@ -64,28 +71,53 @@ struct Visual {
     parts: Vec<Part>,
 }
 
+/// One cube's body and its collider.
+#[derive(Clone, Copy, Debug)]
+struct CubeBody {
+    body: RigidBodyHandle,
+    collider: ColliderHandle,
+}
+
+/// The static-friction hold on a gripped cube (see the module notes on grasping).
+#[derive(Clone, Copy, Debug)]
+struct Grip {
+    joint: ImpulseJointHandle,
+    /// Index of the held cube in the arrangement.
+    cube: usize,
+}
+
 /// The whole simulated scene for one episode.
 pub struct Scene {
     world: PhysicsWorld,
-    layout: Layout,
+    arrangement: Arrangement,
     base: Pose,
     links: [RigidBodyHandle; LINK_COUNT],
     arm_colliders: Vec<ColliderHandle>,
     jaw_colliders: Vec<ColliderHandle>,
     finger_colliders: Vec<ColliderHandle>,
-    /// The static-friction hold on the cube while it is gripped.
-    grip: Option<ImpulseJointHandle>,
-    cube: RigidBodyHandle,
-    cube_collider: ColliderHandle,
+    grip: Option<Grip>,
+    /// The cubes, in the arrangement's order.
+    cubes: Vec<CubeBody>,
     servos: [Servo; JOINT_COUNT],
     visuals: Vec<Visual>,
     frame: u32,
 }
 
 impl Scene {
-    /// A new episode with cube and bowl placed from `seed`, the arm at [`HOME`].
+    /// A new episode of the cube-in-bowl task with cube and bowl placed from `seed`, the arm at
+    /// [`HOME`].
     pub fn new(seed: u64) -> Self {
-        let layout = Layout::from_seed(seed);
+        Self::with_task(TaskKind::CubeInBowl, seed)
+    }
+
+    /// A new episode of `task` with its objects placed from `seed`, the arm at [`HOME`].
+    pub fn with_task(task: TaskKind, seed: u64) -> Self {
+        Self::from_arrangement(Arrangement::from_seed(task, seed))
+    }
+
+    /// A new episode with the objects of `arrangement` (one drawn from a seed, or set by hand),
+    /// the arm at [`HOME`].
+    pub fn from_arrangement(arrangement: Arrangement) -> Self {
         let mut world = PhysicsWorld::new();
         world.gravity = GRAVITY;
         world.integration_parameters.dt = 1.0 / (FPS * SUBSTEPS) as f32;
@@ -102,21 +134,26 @@ impl Scene {
             Vec3::new(TABLE_HALF[0], TABLE_HALF[1], 0.02),
             TABLE_COLOR,
         )];
-        add_body(&mut world, &mut visuals, RigidBodyBuilder::fixed(), table_parts, 0.6);
-        add_body(
-            &mut world,
-            &mut visuals,
-            RigidBodyBuilder::fixed().translation(layout.bowl_position),
-            bowl_parts(),
-            0.6,
-        );
-        let cube_parts = vec![Part::cuboid(Vec3::ZERO, Vec3::splat(CUBE_HALF), CUBE_COLOR)];
-        let cube_body = RigidBodyBuilder::dynamic().translation(layout.cube_position).rotation(Vec3::new(
-            0.0,
-            0.0,
-            layout.cube_yaw,
-        ));
-        let (cube, cube_colliders) = add_body(&mut world, &mut visuals, cube_body, cube_parts, 1.0);
+        let (table, _) = add_body(&mut world, &mut visuals, RigidBodyBuilder::fixed(), table_parts, 0.6);
+        match arrangement.goal {
+            Goal::InBowl { bowl } => {
+                add_body(&mut world, &mut visuals, RigidBodyBuilder::fixed().translation(bowl), bowl_parts(), 0.6);
+            }
+            // Painted on the table: drawn with it, and nothing a pushed cube could catch on.
+            Goal::OnTarget { target } => visuals.push(Visual { body: table, parts: vec![target_marker(target)] }),
+            Goal::OnCube { .. } => {}
+        }
+        let cubes = arrangement
+            .cubes
+            .iter()
+            .map(|cube| {
+                let parts = vec![Part::cuboid(Vec3::ZERO, Vec3::splat(CUBE_HALF), cube.colour.rgb())];
+                let body =
+                    RigidBodyBuilder::dynamic().translation(cube.position).rotation(Vec3::new(0.0, 0.0, cube.yaw));
+                let (body, colliders) = add_body(&mut world, &mut visuals, body, parts, 1.0);
+                CubeBody { body, collider: colliders[0] }
+            })
+            .collect();
 
         let base = Pose::IDENTITY;
         let link_poses = arm::forward_kinematics(base, &HOME);
@@ -145,15 +182,14 @@ impl Scene {
         };
         Self {
             world,
-            layout,
+            arrangement,
             base,
             links,
             arm_colliders,
             jaw_colliders,
             finger_colliders,
             grip: None,
-            cube,
-            cube_collider: cube_colliders[0],
+            cubes,
             servos: HOME.map(Servo::new),
             visuals,
             frame: 0,
@@ -174,8 +210,8 @@ impl Scene {
         let dt = self.world.integration_parameters.dt;
         let joints = arm::joints();
         for _ in 0..SUBSTEPS {
-            let jaw_penetration = self.jaw_penetration();
-            self.update_grip(jaw_penetration);
+            let (pressed_cube, jaw_penetration) = self.jaw_press();
+            self.update_grip(pressed_cube, jaw_penetration);
             let loads = self.gravity_loads();
             // The squeezed cube stops the closing jaw, and keeps it from closing further for as
             // long as it is held (the jaw's contact with the held cube jitters about the squeeze).
@@ -217,16 +253,25 @@ impl Scene {
         self.servos[joint].stall_torque = torque;
     }
 
-    /// Whether the task is done: the cube rests in the bowl (centre within
-    /// [`task::SUCCESS_RADIUS`] horizontally of the bowl centre and below
-    /// [`task::SUCCESS_MAX_HEIGHT`]), the gripper has let go and no part of the arm touches it.
+    /// Whether the task is done: its cube is where the task's [`Goal`] asks (for the cube-in-bowl
+    /// task: centre within [`crate::task::SUCCESS_RADIUS`] horizontally of the bowl centre and
+    /// below [`crate::task::SUCCESS_MAX_HEIGHT`]), the gripper has let go and no part of the arm
+    /// touches a cube.
     pub fn success(&self) -> bool {
-        let cube = self.cube_pose().translation;
-        let offset = (cube - self.layout.bowl_position).truncate().length();
-        offset < task::SUCCESS_RADIUS
-            && cube.z < task::SUCCESS_MAX_HEIGHT
+        let cubes: Vec<Vec3> = (0..self.cubes.len()).map(|cube| self.cube_pose_at(cube).translation).collect();
+        self.arrangement.goal.met(self.arrangement.subject, &cubes)
             && self.servos[GRIPPER].position > GRIPPER_RELEASED
             && !self.arm_touches_cube()
+    }
+
+    /// The task this episode sets.
+    pub fn task(&self) -> TaskKind {
+        self.arrangement.task
+    }
+
+    /// The task's language instruction for this episode (LeRobot `task`).
+    pub fn instruction(&self) -> String {
+        self.arrangement.instruction()
     }
 
     /// Control steps taken since the episode started.
@@ -234,9 +279,9 @@ impl Scene {
         self.frame
     }
 
-    /// Initial placement of cube and bowl.
-    pub fn layout(&self) -> &Layout {
-        &self.layout
+    /// What stood on the table as the episode started, and what the task asks.
+    pub fn arrangement(&self) -> &Arrangement {
+        &self.arrangement
     }
 
     /// Pose of the arm's base on the table.
@@ -244,9 +289,14 @@ impl Scene {
         self.base
     }
 
-    /// Current pose of the cube (centre), world frame, metres.
+    /// Current pose of the cube the task moves (centre), world frame, metres.
     pub fn cube_pose(&self) -> Pose {
-        *self.world.bodies[self.cube].position()
+        self.cube_pose_at(self.arrangement.subject)
+    }
+
+    /// Current pose of cube `index` of the arrangement (centre), world frame, metres.
+    pub fn cube_pose_at(&self, index: usize) -> Pose {
+        *self.world.bodies[self.cubes[index].body].position()
     }
 
     /// Current pose of arm link `index` (see [`arm::LINKS`]), world frame.
@@ -259,73 +309,89 @@ impl Scene {
         self.visuals.iter().map(|visual| (*self.world.bodies[visual.body].position(), visual.parts.as_slice()))
     }
 
-    /// Whether any arm collider is in contact with the cube.
+    /// Whether any arm collider is in contact with any cube.
     pub fn arm_touches_cube(&self) -> bool {
-        self.cube_contacts(&self.arm_colliders).any(rapier3d::geometry::ContactPair::has_any_active_contact)
+        (0..self.cubes.len()).any(|cube| {
+            self.cube_contacts(cube, &self.arm_colliders).any(rapier3d::geometry::ContactPair::has_any_active_contact)
+        })
     }
 
-    /// Whether the cube is held by the gripper (see the module notes on grasping).
+    /// Whether a cube is held by the gripper (see the module notes on grasping).
     pub fn cube_gripped(&self) -> bool {
         self.grip.is_some()
+    }
+
+    /// Index in the arrangement of the cube the gripper holds, if it holds one.
+    pub fn held_cube(&self) -> Option<usize> {
+        self.grip.map(|grip| grip.cube)
     }
 
     /// Torque each joint needs to hold the arm still against gravity as it stands now, with the
     /// cube while it is gripped, N·m.
     fn gravity_loads(&self) -> [f32; JOINT_COUNT] {
         let links = self.links.map(|link| *self.world.bodies[link].position());
-        let cube = &self.world.bodies[self.cube];
-        let held =
-            self.grip.map(|_| Payload { link: GRIPPER_LINK, mass: cube.mass(), position: cube.center_of_mass() });
+        let held = self.grip.map(|grip| {
+            let cube = &self.world.bodies[self.cubes[grip.cube].body];
+            Payload { link: GRIPPER_LINK, mass: cube.mass(), position: cube.center_of_mass() }
+        });
         arm::gravity_torques(&links, held, GRAVITY)
     }
 
-    /// Starts holding the cube when the jaw presses it onto the fixed finger, and lets go
-    /// as soon as the gripper is told to open.
-    fn update_grip(&mut self, jaw_penetration: f32) {
+    /// Starts holding cube `pressed_cube` when the jaw presses it `jaw_penetration` deep onto
+    /// the fixed finger, and lets go as soon as the gripper is told to open.
+    fn update_grip(&mut self, pressed_cube: usize, jaw_penetration: f32) {
         let jaw = self.servos[GRIPPER];
         let opening = jaw.goal > jaw.position;
         match self.grip {
             None if !opening
                 && jaw_penetration > GRIP_SQUEEZE
-                && self.deepest_contact(&self.finger_colliders) > -TOUCHING =>
+                && self.deepest_contact(pressed_cube, &self.finger_colliders) > -TOUCHING =>
             {
                 let gripper = self.links[GRIPPER_LINK];
-                let relative = self.world.bodies[gripper].position().inv_mul(&self.cube_pose());
+                let relative = self.world.bodies[gripper].position().inv_mul(&self.cube_pose_at(pressed_cube));
                 // The hold stands in for the fixed finger's contact with the cube: left on, that
                 // contact fights the joint, stores impulse and flings the cube when it lets go.
                 let hold = FixedJointBuilder::new()
                     .local_frame1(relative)
                     .local_frame2(Pose::IDENTITY)
                     .contacts_enabled(false);
-                self.grip = Some(self.world.impulse_joints.insert(gripper, self.cube, hold, true));
+                let joint = self.world.impulse_joints.insert(gripper, self.cubes[pressed_cube].body, hold, true);
+                self.grip = Some(Grip { joint, cube: pressed_cube });
             }
-            Some(hold) if opening => {
-                self.world.impulse_joints.remove(hold, true);
+            Some(grip) if opening => {
+                self.world.impulse_joints.remove(grip.joint, true);
                 self.grip = None;
             }
             _ => {}
         }
     }
 
-    /// Deepest penetration of the moving jaw into the cube, metres (0 when apart).
-    fn jaw_penetration(&self) -> f32 {
-        self.deepest_contact(&self.jaw_colliders).max(0.0)
+    /// The cube the moving jaw presses deepest into, and how deep, metres (0 when apart from
+    /// every cube).
+    fn jaw_press(&self) -> (usize, f32) {
+        (0..self.cubes.len())
+            .map(|cube| (cube, self.deepest_contact(cube, &self.jaw_colliders).max(0.0)))
+            .fold((0, 0.0), |deepest, press| if press.1 > deepest.1 { press } else { deepest })
     }
 
-    /// Largest penetration (negative: gap) between the cube and any of `colliders`, metres;
+    /// Largest penetration (negative: gap) between cube `cube` and any of `colliders`, metres;
     /// minus infinity when none is near.
-    fn deepest_contact(&self, colliders: &[ColliderHandle]) -> f32 {
-        self.cube_contacts(colliders)
+    fn deepest_contact(&self, cube: usize, colliders: &[ColliderHandle]) -> f32 {
+        self.cube_contacts(cube, colliders)
             .filter_map(|pair| pair.find_deepest_contact())
             .map(|(_, contact)| -contact.dist)
             .fold(f32::NEG_INFINITY, f32::max)
     }
 
-    /// Contact pairs between the cube and any of `colliders`.
-    fn cube_contacts<'a>(&'a self, colliders: &'a [ColliderHandle]) -> impl Iterator<Item = &'a ContactPair> {
+    /// Contact pairs between cube `cube` and any of `colliders`.
+    fn cube_contacts<'a>(
+        &'a self,
+        cube: usize,
+        colliders: &'a [ColliderHandle],
+    ) -> impl Iterator<Item = &'a ContactPair> {
         self.world
             .narrow_phase
-            .contact_pairs_with(self.cube_collider)
+            .contact_pairs_with(self.cubes[cube].collider)
             .filter(move |pair| colliders.contains(&pair.collider1) || colliders.contains(&pair.collider2))
     }
 }
@@ -353,13 +419,22 @@ fn add_body(
     (handle, colliders)
 }
 
+/// The target marker: a thin white disc on the table centred on `target`.
+fn target_marker(target: Vec3) -> Part {
+    let center = Vec3::new(target.x, target.y, TARGET_THICKNESS * 0.5);
+    Part::cylinder(center, upright(), TARGET_THICKNESS * 0.5, TARGET_RADIUS, TARGET_COLOR)
+}
+
+/// Rapier cylinders stand along local y: this turns one to stand along z.
+fn upright() -> Rot3 {
+    Rot3::from_rotation_x(FRAC_PI_2)
+}
+
 /// The bowl: a round floor and a wall of flat segments, centred on the body origin.
 fn bowl_parts() -> Vec<Part> {
     let outer = BOWL_INNER_RADIUS + BOWL_WALL;
-    // Rapier cylinders stand along local y; turn it to stand along z.
-    let upright = Rot3::from_rotation_x(FRAC_PI_2);
     let mut parts =
-        vec![Part::cylinder(Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5), upright, BOWL_FLOOR * 0.5, outer, BOWL_COLOR)];
+        vec![Part::cylinder(Vec3::new(0.0, 0.0, BOWL_FLOOR * 0.5), upright(), BOWL_FLOOR * 0.5, outer, BOWL_COLOR)];
     let segment_half_length = outer * (std::f32::consts::PI / BOWL_SEGMENTS as f32).tan();
     for k in 0..BOWL_SEGMENTS {
         let angle = k as f32 * std::f32::consts::TAU / BOWL_SEGMENTS as f32;

@@ -21,6 +21,11 @@ impl SplitMix64 {
         low + (high - low) * self.next_f32()
     }
 
+    /// 1 or -1 with even odds: which side of the arm something stands on.
+    pub(crate) fn side(&mut self) -> f32 {
+        if self.next_f32() < 0.5 { 1.0 } else { -1.0 }
+    }
+
     /// Standard normal (Box-Muller; the first draw is shifted off zero so its logarithm is finite).
     pub(crate) fn gaussian(&mut self) -> f32 {
         let u = (self.next_f32() + f32::EPSILON).min(1.0);

@@ -52,3 +52,33 @@ fn image_size_is_configurable() {
     assert_eq!(rgb.len(), 320 * 240 * 3);
     assert!(variance(&rgb) > 100.0);
 }
+
+/// Pixels within `tolerance` of `color` on every channel.
+fn pixels_near(rgb: &[u8], color: [u8; 3], tolerance: u8) -> usize {
+    rgb.chunks_exact(3).filter(|p| p.iter().zip(color).all(|(a, b)| a.abs_diff(b) <= tolerance)).count()
+}
+
+/// Every task's objects stand in the top camera's view as the episode starts, each cube in its
+/// own colour and the target marker on the table.
+#[test]
+fn the_top_camera_sees_every_task_s_objects() {
+    use fedvla_sim::{CubeColour, Goal, TaskKind};
+    for task in TaskKind::ALL {
+        for seed in 0..5 {
+            let scene = Scene::with_task(task, seed);
+            let rgb = render(&scene, Camera::Top, SIZE, SIZE);
+            // Lit from above: the top faces show each colour at about 90% brightness.
+            let lit = |color: [f32; 3]| color.map(|channel| (channel * 0.915 * 255.0) as u8);
+            for cube in &scene.arrangement().cubes {
+                let seen = pixels_near(&rgb, lit(cube.colour.rgb()), 30);
+                assert!(seen > 15, "{task} seed {seed}: {seen} pixels of the {} cube", cube.colour.name());
+            }
+            if let Goal::OnTarget { .. } = scene.arrangement().goal {
+                let seen = pixels_near(&rgb, [230, 230, 230], 20);
+                assert!(seen > 100, "{task} seed {seed}: {seen} pixels of the target");
+            }
+        }
+        let colours: Vec<CubeColour> = Scene::with_task(task, 0).arrangement().cubes.iter().map(|c| c.colour).collect();
+        assert!(colours.iter().enumerate().all(|(i, c)| !colours[..i].contains(c)), "{task}: {colours:?}");
+    }
+}

@@ -1,7 +1,10 @@
-//! The native volunteer: its I/O (tokio-tungstenite for the WebSocket, plain HTTP/1.1 requests with hyper for
-//! the shared start-up's downloads ([`Fetch`]) and its uploads) and [`volunteer`], what `fedvla join` and every
-//! client of `fedvla simulate` run: the same downloads and round loop as the browser's.
+//! The native volunteer: its I/O (tokio-tungstenite for the WebSocket, HTTP/1.1 requests with hyper for the
+//! shared start-up's downloads ([`Fetch`]) and its uploads, each over TCP or, for `https://` and `wss://`
+//! servers, TLS ([`Dialer`])) and [`volunteer`], what `fedvla join` and every client of `fedvla simulate` run:
+//! the same downloads and round loop as the browser's.
 
+use std::path::Path;
+use std::sync::Arc;
 use std::time::Instant;
 
 use burn::tensor::Device;
@@ -20,20 +23,84 @@ use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
 use hyper_util::rt::TokioIo;
 use tokio::net::TcpStream;
+use tokio_rustls::TlsConnector;
+use tokio_rustls::client::TlsStream;
+use tokio_rustls::rustls::pki_types::pem::PemObject;
+use tokio_rustls::rustls::pki_types::{CertificateDer, ServerName};
+use tokio_rustls::rustls::{self, ClientConfig, RootCertStore};
+use tokio_tungstenite::WebSocketStream;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::http::Uri;
-use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
+use tokio_util::either::Either;
 
-/// One request over a fresh HTTP/1 connection to `authority`; a non-2xx status is an error carrying the body.
+/// A connection to the server: plain TCP, or TLS over it.
+pub type Connection = Either<TcpStream, TlsStream<TcpStream>>;
+
+/// How a native volunteer reaches the server: its `host:port`, and for a TLS server (`https://`, `wss://`) the
+/// name its certificate must carry and the roots it must chain to: the Mozilla roots (webpki-roots) and any
+/// given with `--ca-cert` (a server's own self-signed certificate, say).
+#[derive(Clone)]
+pub struct Dialer {
+    authority: String,
+    tls: Option<(TlsConnector, ServerName<'static>)>,
+}
+
+impl Dialer {
+    /// Plain TCP to `authority` (`host:port`).
+    pub fn plain(authority: &str) -> Self {
+        Self { authority: authority.to_owned(), tls: None }
+    }
+
+    /// TLS to `authority`, whose certificate must name `host` and chain to the Mozilla roots or to a certificate
+    /// of the PEM file `extra_roots`.
+    pub fn tls(authority: &str, host: &str, extra_roots: Option<&Path>) -> Result<Self, BoxError> {
+        let mut roots = RootCertStore::from_iter(webpki_roots::TLS_SERVER_ROOTS.iter().cloned());
+        if let Some(path) = extra_roots {
+            let pem = std::fs::read(path).map_err(|e| format!("reading {}: {e}", path.display()))?;
+            let certificates = CertificateDer::pem_slice_iter(&pem)
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| format!("{}: no certificate in PEM: {e}", path.display()))?;
+            if certificates.is_empty() {
+                return Err(format!("{}: no CERTIFICATE section", path.display()).into());
+            }
+            for certificate in certificates {
+                roots.add(certificate).map_err(|e| format!("{}: {e}", path.display()))?;
+            }
+        }
+        let config = ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
+            .with_safe_default_protocol_versions()?
+            .with_root_certificates(roots)
+            .with_no_client_auth();
+        let name = ServerName::try_from(host.to_owned()).map_err(|e| format!("server name `{host}`: {e}"))?;
+        Ok(Self { authority: authority.to_owned(), tls: Some((TlsConnector::from(Arc::new(config)), name)) })
+    }
+
+    /// Whether its connections are TLS.
+    pub fn is_tls(&self) -> bool {
+        self.tls.is_some()
+    }
+
+    /// A fresh connection, Nagle off (an update is a small header message followed at once by frames).
+    pub async fn connect(&self) -> Result<Connection, BoxError> {
+        let stream = TcpStream::connect(&self.authority).await?;
+        stream.set_nodelay(true)?;
+        Ok(match &self.tls {
+            None => Either::Left(stream),
+            Some((connector, name)) => Either::Right(connector.connect(name.clone(), stream).await?),
+        })
+    }
+}
+
+/// One request over a fresh HTTP/1 connection by `dialer`; a non-2xx status is an error carrying the body.
 pub async fn http_request(
-    authority: &str,
+    dialer: &Dialer,
     request: hyper::http::request::Builder,
     body: Bytes,
 ) -> Result<Vec<u8>, BoxError> {
-    let stream = TcpStream::connect(authority).await?;
+    let stream = dialer.connect().await?;
     let (mut sender, conn) = hyper::client::conn::http1::handshake(TokioIo::new(stream)).await?;
     let conn = tokio::spawn(conn);
-    let request = request.header(hyper::header::HOST, authority).body(Full::new(body))?;
+    let request = request.header(hyper::header::HOST, &dialer.authority).body(Full::new(body))?;
     let what = format!("{} {}", request.method(), request.uri());
     let response = sender.send_request(request).await?;
     let status = response.status();
@@ -47,8 +114,8 @@ pub async fn http_request(
 }
 
 pub struct NativeTransport {
-    ws: WebSocketStream<MaybeTlsStream<TcpStream>>,
-    authority: String,
+    ws: WebSocketStream<Connection>,
+    dialer: Dialer,
     /// The run's auth token, presented with every download (a run that has one serves nothing without it).
     auth_token: Option<String>,
     started: Instant,
@@ -60,19 +127,26 @@ impl NativeTransport {
         Fetch::get(self, path, path, None).await
     }
 
-    /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored).
+    /// Connects to a server given as `ws://host:port`, `http://host:port` or `host:port` (path ignored), or over
+    /// TLS as `wss://` or `https://`, trusting the Mozilla roots.
     pub async fn connect(server: &str) -> Result<Self, BoxError> {
+        Self::connect_trusting(server, None).await
+    }
+
+    /// As [`NativeTransport::connect`], a TLS server's certificate chaining to the Mozilla roots or to one in the
+    /// PEM file `extra_roots`.
+    pub async fn connect_trusting(server: &str, extra_roots: Option<&Path>) -> Result<Self, BoxError> {
         let uri: Uri = if server.contains("://") { server.parse()? } else { format!("ws://{server}").parse()? };
-        if !matches!(uri.scheme_str(), Some("ws" | "http")) {
-            return Err(
-                format!("unsupported scheme in `{server}`: use ws:// or http:// (TLS is left to a proxy)").into()
-            );
-        }
-        let authority = uri.authority().ok_or_else(|| format!("no host in `{server}`"))?.to_string();
-        // Nagle off: an update is a small header message followed at once by frames.
-        let (ws, _) =
-            tokio_tungstenite::connect_async_with_config(format!("ws://{authority}{}", routes::WS), None, true).await?;
-        Ok(Self { ws, authority, auth_token: None, started: Instant::now() })
+        let authority = uri.authority().ok_or_else(|| format!("no host in `{server}`"))?;
+        let dialer = match uri.scheme_str() {
+            Some("ws" | "http") => Dialer::plain(authority.as_str()),
+            Some("wss" | "https") => Dialer::tls(authority.as_str(), authority.host(), extra_roots)?,
+            _ => return Err(format!("unsupported scheme in `{server}`: use ws://, http://, wss:// or https://").into()),
+        };
+        let scheme = if dialer.is_tls() { "wss" } else { "ws" };
+        let url = format!("{scheme}://{authority}{}", routes::WS);
+        let (ws, _) = tokio_tungstenite::client_async_with_config(url, dialer.connect().await?, None).await?;
+        Ok(Self { ws, dialer, auth_token: None, started: Instant::now() })
     }
 
     /// Presents `auth_token` with every download.
@@ -88,7 +162,7 @@ impl Fetch for NativeTransport {
         if let Some(token) = &self.auth_token {
             request = request.header(hyper::header::AUTHORIZATION, format!("Bearer {token}"));
         }
-        let bytes = http_request(&self.authority, request, Bytes::new()).await?;
+        let bytes = http_request(&self.dialer, request, Bytes::new()).await?;
         tracing::debug!(what, bytes = bytes.len(), "downloaded");
         Ok(bytes)
     }
@@ -124,14 +198,14 @@ impl ClientTransport for NativeTransport {
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
         let request = hyper::Request::get(routes::correction(round))
             .header(hyper::header::AUTHORIZATION, format!("Bearer {session}"));
-        http_request(&self.authority, request, Bytes::new()).await
+        http_request(&self.dialer, request, Bytes::new()).await
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
         let request = hyper::Request::post(routes::rollout_video(round, &video.file_name))
             .header(hyper::header::AUTHORIZATION, format!("Bearer {session}"))
             .header(hyper::header::CONTENT_TYPE, video.mime);
-        http_request(&self.authority, request, Bytes::from(video.bytes)).await.map(drop)
+        http_request(&self.dialer, request, Bytes::from(video.bytes)).await.map(drop)
     }
 
     fn now_seconds(&self) -> f64 {
@@ -139,18 +213,20 @@ impl ClientTransport for NativeTransport {
     }
 }
 
-/// Volunteer `name` of the server at `server` (`ws://`, `http://` or `host:port`) until the run finishes: fetches
-/// its setup (on `shard` when given), builds the trainer the server's workload needs from what it downloads, and
-/// runs the shared round loop, reporting to `on_event`. With `attack` (simulations only) its updates are corrupted.
+/// Volunteer `name` of the server at `server` (`ws://`, `http://`, `host:port`, or over TLS `wss://`, `https://`,
+/// trusting the Mozilla roots and those of the PEM file `ca_cert`) until the run finishes: fetches its setup (on
+/// `shard` when given), builds the trainer the server's workload needs from what it downloads, and runs the
+/// shared round loop, reporting to `on_event`. With `attack` (simulations only) its updates are corrupted.
 pub async fn volunteer(
     server: &str,
+    ca_cert: Option<&Path>,
     name: &str,
     shard: Option<u32>,
     auth_token: Option<String>,
     attack: Option<Attack>,
     on_event: impl FnMut(ClientEvent),
 ) -> Result<ClientSummary, BoxError> {
-    let mut transport = NativeTransport::connect(server).await?.with_auth_token(auth_token.clone());
+    let mut transport = NativeTransport::connect_trusting(server, ca_cert).await?.with_auth_token(auth_token.clone());
     let setup = fetch_setup(&transport, name, shard).await?;
     tracing::info!(workload = ?setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
     let options = ClientOptions { name: name.to_owned(), auth_token, shard: Some(setup.shard_index) };

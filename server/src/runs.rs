@@ -5,6 +5,7 @@
 //! sample counts). Both write the same `outputs/<run>/` layout, a baseline "round" being the samples of one
 //! federated round, so every reader of a federation's outputs reads a baseline's too.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -95,11 +96,14 @@ fn serve_clients(
     let attack = Attack { kind: config.attack, strength: config.attack_strength };
     let attackers = config.attackers;
     let auth_token = config.auth_token().map(str::to_owned);
+    // Over TLS, the clients trust the server's own certificate (self-signed, or one of the Mozilla roots' chains).
+    let ca_cert = config.tls_files().map(|(cert, _)| cert.to_owned());
     let parts = server_parts(workload, config, run_dir).map_err(boxed)?;
     runtime()?.block_on(async move {
         let listener = TcpListener::bind("127.0.0.1:0").await.context("binding 127.0.0.1:0")?;
         let handle = server::start(parts, listener)?;
-        let url = format!("ws://{}", handle.addr());
+        let scheme = if ca_cert.is_some() { "wss" } else { "ws" };
+        let url = format!("{scheme}://{}", handle.addr());
         let round_bar = bars.bar(rounds, "server".into())?;
         let mut status = handle.status();
         let watcher = tokio::spawn({
@@ -120,7 +124,8 @@ fn serve_clients(
             .map(|shard| {
                 let attack = (shard < attackers).then_some(attack);
                 let prefix = if attack.is_some() { format!("attacker {shard}") } else { format!("client {shard}") };
-                Ok(spawn_client(url.clone(), shard, auth_token.clone(), attack, bars.bar(rounds, prefix)?))
+                let server = Server { url: url.clone(), ca_cert: ca_cert.clone(), auth_token: auth_token.clone() };
+                Ok(spawn_client(server, shard, attack, bars.bar(rounds, prefix)?))
             })
             .collect::<anyhow::Result<_>>()?;
         // A simulated federation cannot finish without its clients: the first client to fail
@@ -159,10 +164,16 @@ fn serve_clients(
 
 /// Volunteer `client-<shard>` on shard `shard` with its own progress bar, on its own thread: trainers' futures
 /// need not be `Send` (the browser's are not), and CPU-bound trainers then train in parallel.
-fn spawn_client(
+/// Where `simulate`'s clients join, and what they trust and present there.
+struct Server {
     url: String,
-    shard: usize,
+    ca_cert: Option<PathBuf>,
     auth_token: Option<String>,
+}
+
+fn spawn_client(
+    server: Server,
+    shard: usize,
     attack: Option<Attack>,
     bar: ProgressBar,
 ) -> oneshot::Receiver<anyhow::Result<()>> {
@@ -170,28 +181,32 @@ fn spawn_client(
     std::thread::spawn(move || {
         let client = async move {
             let name = format!("client-{shard}");
+            let Server { url, ca_cert, auth_token } = server;
+            let shard_index = Some(shard as u32);
             let summary =
-                native_client::volunteer(&url, &name, Some(shard as u32), auth_token, attack, |event| match event {
-                    ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
-                    ClientEvent::Task { round, local_steps } => {
-                        bar.set_message(format!("round {round}: training {local_steps} steps"));
-                    }
-                    ClientEvent::Trained { round, train_loss, .. } => {
-                        bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
-                    }
-                    ClientEvent::Uploaded { round, bytes, .. } => {
-                        bar.set_message(format!("round {round}: sent {bytes} B"));
-                    }
-                    ClientEvent::RolledOut { round, episodes, successes } => {
-                        bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
-                    }
-                    ClientEvent::RoundClosed { round, accepted } => {
-                        if accepted {
-                            bar.set_position(round);
+                native_client::volunteer(&url, ca_cert.as_deref(), &name, shard_index, auth_token, attack, |event| {
+                    match event {
+                        ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
+                        ClientEvent::Task { round, local_steps } => {
+                            bar.set_message(format!("round {round}: training {local_steps} steps"));
                         }
-                    }
-                    ClientEvent::Refused { code, .. } => {
-                        bar.set_message(format!("refused: {}", code.as_str()));
+                        ClientEvent::Trained { round, train_loss, .. } => {
+                            bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
+                        }
+                        ClientEvent::Uploaded { round, bytes, .. } => {
+                            bar.set_message(format!("round {round}: sent {bytes} B"));
+                        }
+                        ClientEvent::RolledOut { round, episodes, successes } => {
+                            bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
+                        }
+                        ClientEvent::RoundClosed { round, accepted } => {
+                            if accepted {
+                                bar.set_position(round);
+                            }
+                        }
+                        ClientEvent::Refused { code, .. } => {
+                            bar.set_message(format!("refused: {}", code.as_str()));
+                        }
                     }
                 })
                 .await

@@ -1,14 +1,15 @@
 //! One attacker among five clients (seven for Bulyan), sampled every round, sending its update scaled by 100 (and, separately,
 //! sign-flipped): FedAvg is broken by it, while the robust rules stay where they are without the attacker.
-//! On the linreg workload, over loopback, through `simulate`'s own client spawning.
+//! On the linreg workload, over loopback, through `simulate`'s own client spawning. The rules are judged alone
+//! (`update-norm-factor=0`), but for the test of the server's own norm screen, which runs before any rule.
 
 use fedvla_aggregator::config::RunConfig;
-use fedvla_aggregator::records::read_metrics;
+use fedvla_aggregator::records::{MetricsLine, read_metrics};
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_server::runs::{Bars, federated};
 
-/// The final server held-out loss of a 3-round, 5-client linreg federation.
-fn final_loss(overrides: &str) -> f64 {
+/// The metrics of a 3-round, 5-client linreg federation.
+fn federation(overrides: &str) -> Vec<MetricsLine> {
     let tmp = tempfile::tempdir().unwrap();
     let config = RunConfig::default()
         .with_overrides(&format!(
@@ -18,8 +19,35 @@ fn final_loss(overrides: &str) -> f64 {
         .unwrap();
     let run_dir = RunDir::create(tmp.path(), &config).unwrap();
     federated(config, run_dir.clone(), &Bars::hidden()).unwrap();
-    let lines = read_metrics(run_dir.path()).unwrap();
+    read_metrics(run_dir.path()).unwrap()
+}
+
+fn last_loss(lines: &[MetricsLine]) -> f64 {
     lines.last().and_then(|l| l.global.as_ref()).and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss
+}
+
+/// The final server held-out loss of the federation, its strategy judging the updates alone.
+fn final_loss(overrides: &str) -> f64 {
+    last_loss(&federation(&format!("update-norm-factor=0 {overrides}")))
+}
+
+/// The server's norm screen (on by default) leaves the attacker scaling its change by 100 out of every round, before
+/// FedAvg sees it: the run ends where the four honest clients alone take it, and every refusal is on record.
+#[test]
+fn the_norm_screen_leaves_a_scaled_update_out_before_fedavg_sees_it() {
+    let four = "strategy=fedavg min-fit=4";
+    let screened = federation(&format!("{four} attackers=1 attack=scale attack-strength=100"));
+    let clean = final_loss(four);
+    assert!((last_loss(&screened) - clean).abs() < 0.5 * clean, "{} against {clean}", last_loss(&screened));
+    for line in &screened[1..] {
+        assert_eq!(line.rejections.get("update_norm_outlier"), Some(&1), "round {}", line.round);
+        let dropped: Vec<_> = line.clients.iter().filter(|c| !c.accepted).collect();
+        assert_eq!(dropped.len(), 1, "round {}", line.round);
+        assert!(dropped[0].dropped.as_deref().is_some_and(|r| r.contains("median norm")), "{:?}", dropped[0]);
+    }
+    // Honest clients are never screened out.
+    let honest = federation(four);
+    assert!(honest.iter().all(|l| l.rejections.is_empty() && l.clients.iter().all(|c| c.accepted)));
 }
 
 #[test]

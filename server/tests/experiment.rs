@@ -23,7 +23,12 @@ fn config(out: &Path, dataset: &Path) -> ExperimentConfig {
         output_dir: out.display().to_string(),
         arms: vec![
             Arm { name: "centralized".into(), mode: Mode::Centralized, run_config: String::new() },
-            Arm { name: "fedavg".into(), mode: Mode::Federated, run_config: String::new() },
+            // Client-level DP (noise 0.3 x 0.05 / 2 clients per value): the report states the privacy each round spent.
+            Arm {
+                name: "dp-fedavg".into(),
+                mode: Mode::Federated,
+                run_config: "dp-noise-multiplier=0.3 dp-clip-norm=0.05".into(),
+            },
         ],
     }
 }
@@ -46,7 +51,7 @@ fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
     let first = config(&tmp.path().join("a"), &dataset);
     let dir = experiment::run(&first, &|_| Ok(())).unwrap();
     let report: Report = serde_json::from_slice(&std::fs::read(dir.join(REPORT_JSON)).unwrap()).unwrap();
-    assert_eq!(report.arms.iter().map(|a| a.name.as_str()).collect::<Vec<_>>(), ["centralized", "fedavg"]);
+    assert_eq!(report.arms.iter().map(|a| a.name.as_str()).collect::<Vec<_>>(), ["centralized", "dp-fedavg"]);
     for arm in &report.arms {
         assert_eq!(arm.seeds, [3, 4]);
         let f = &arm.final_;
@@ -58,6 +63,15 @@ fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
     }
     assert!(report.arms[0].ratio_to_centralized.is_none());
     assert!(report.arms[1].ratio_to_centralized.is_some());
+    // Epsilon (at the run's delta) after every round, growing with the rounds; none for the arm without DP.
+    assert!(report.arms[0].privacy.is_none());
+    let privacy = report.arms[1].privacy.as_ref().expect("the DP arm reports its privacy");
+    assert_eq!(privacy.noise_multiplier, 0.3);
+    assert_eq!(privacy.epsilon_per_round.iter().map(|e| e.round).collect::<Vec<_>>(), [1, 2]);
+    let [one, two] = [0, 1].map(|i| privacy.epsilon_per_round[i].epsilon);
+    assert!(0.0 < one && one < two && two.is_finite(), "{one} {two}");
+    let markdown = std::fs::read_to_string(dir.join(experiment::report::REPORT_MD)).unwrap();
+    assert!(markdown.contains("Privacy spent") && markdown.contains(&format!("{two:.3}")), "{markdown}");
     // The schema the issue names, read by key.
     let raw: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join(REPORT_JSON)).unwrap()).unwrap();
     for key in ["heldout_loss", "action_mse", "action_l1", "success_rate"] {
@@ -72,11 +86,11 @@ fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
         assert!(var > 50.0, "{plot} is not blank");
     }
     // A finished run keeps its models and metrics, not its clients' copies of the dataset.
-    let run = tmp.path().join("a/tiny/fedavg/seed_4");
+    let run = tmp.path().join("a/tiny/dp-fedavg/seed_4");
     assert!(run.join("metrics.jsonl").is_file() && run.join("global_model").is_dir());
     assert!(!run.join("shards").exists(), "a finished run's shards are removed");
     // Resumed, a finished grid runs nothing again: the runs' final evaluations stay as they were.
-    let final_of = |root: &Path| std::fs::read(root.join("tiny/fedavg/seed_4/final.json")).unwrap();
+    let final_of = |root: &Path| std::fs::read(root.join("tiny/dp-fedavg/seed_4/final.json")).unwrap();
     let before = final_of(&tmp.path().join("a"));
     experiment::run(&first, &|_| panic!("no run should start")).unwrap();
     assert_eq!(final_of(&tmp.path().join("a")), before);

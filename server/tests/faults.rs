@@ -106,6 +106,38 @@ async fn too_few_updates_retry_the_round() {
     assert!(lines[1]["attempt"].as_u64().unwrap() >= 1);
 }
 
+/// An update for the running round from a client the round did not sample, and a second update from a sampled
+/// one, are refused with their own codes; the round aggregates the first updates as if neither had been sent.
+#[tokio::test]
+async fn unrequested_and_duplicate_updates_are_refused_with_their_own_codes() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=1 num-clients=3 min-clients=2 min-fit=2 round-deadline-ms=20000");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let (mut first, _, _) = RawClient::join_shard(&handle, "client-0", Some(0)).await;
+    let (mut second, _, _) = RawClient::join_shard(&handle, "client-1", Some(1)).await;
+    for c in [&mut first, &mut second] {
+        assert!(matches!(c.recv().await, Some(ServerMessage::RoundTask(_))));
+    }
+    // Joined after the round sampled its clients.
+    let (mut late, _, _) = RawClient::join_shard(&handle, "client-2", Some(2)).await;
+    late.upload(1, &linreg_head(9.0, 0.0), 1).await;
+    expect_error(late.recv().await, ErrorCode::UnrequestedUpdate, "not sampled");
+    first.upload(1, &linreg_head(0.5, 0.0), 1).await;
+    first.upload(1, &linreg_head(9.0, 0.0), 1).await;
+    expect_error(first.recv().await, ErrorCode::DuplicateUpdate, "second update");
+    second.upload(1, &linreg_head(1.5, 0.0), 1).await;
+
+    let status = handle.finish().await.unwrap();
+    assert_eq!(status.completed_rounds, 1);
+    assert_eq!(status.rejections.get(&ErrorCode::UnrequestedUpdate), Some(&1));
+    assert_eq!(status.rejections.get(&ErrorCode::DuplicateUpdate), Some(&1));
+    // The shard-weighted mean of 0.5 and 1.5: neither 9.0 went in.
+    let model = run_dir.load_model(1).unwrap();
+    let weights = &model.get(WEIGHT).unwrap().values;
+    assert!(weights.iter().all(|w| (0.5..=1.5).contains(w)), "{weights:?}");
+}
+
 fn head(weight: Vec<f32>, bias: Vec<f32>) -> NamedTensors {
     let mut t = NamedTensors::new();
     t.insert(WEIGHT, vec![1, FEATURES], weight).unwrap();

@@ -43,6 +43,17 @@ async fn three_clients_two_rounds() {
         assert_eq!(updates.len(), 3);
         assert_ne!(updates[0].examples, updates[1].examples, "unequal weights make the test meaningful");
         assert_close(&run_dir.load_model(round).unwrap(), &weighted_mean(&updates), 1e-6);
+        // Each client's record holds the norm of its change from the model the round started from.
+        let start = run_dir.load_model(round - 1).unwrap();
+        let sorted = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v
+        };
+        let sent = sorted(updates.iter().map(|u| u.update.distance(&start).unwrap()).collect());
+        let line = &read_metrics(&dir).unwrap()[round as usize];
+        let recorded = sorted(line.clients.iter().map(|c| c.update_norm.expect("an accepted update's norm")).collect());
+        assert_eq!(recorded, sent);
+        assert!(sent.iter().all(|n| *n > 0.0));
     }
 
     // Only the trainable head crosses the wire: payload (names, shapes, f32 values) plus one header per frame.

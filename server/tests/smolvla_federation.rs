@@ -62,8 +62,12 @@ impl LocalTrainer for Recording {
 }
 
 fn dataset(dir: &Path) -> std::path::PathBuf {
+    dataset_of(dir, 7)
+}
+
+fn dataset_of(dir: &Path, episodes: usize) -> std::path::PathBuf {
     let root = dir.join("so100");
-    generate_dataset(&root, &GenDataOptions { episodes: 7, seed: 0, image_size: 32, ..Default::default() }, |_| {})
+    generate_dataset(&root, &GenDataOptions { episodes, seed: 0, image_size: 32, ..Default::default() }, |_| {})
         .unwrap();
     root
 }
@@ -101,7 +105,7 @@ async fn run_with(cfg: RunConfig) -> Run {
     let parts = server_parts(&workload, cfg.clone(), run_dir.clone()).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
-    let clients = spawn_clients(handle.addr(), None);
+    let clients = spawn_clients(handle.addr(), cfg.num_clients, None);
     let status = handle.finish().await.unwrap();
     assert_eq!(status.completed_rounds, 2);
     assert!(status.rejections.is_empty(), "{:?}", status.rejections);
@@ -117,13 +121,14 @@ async fn run_with(cfg: RunConfig) -> Run {
 
 type Updates = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
 
-/// Three native volunteers on their own threads (trainer futures are not Send, the browser's are not either),
+/// `count` native volunteers on their own threads (trainer futures are not Send, the browser's are not either),
 /// each downloading its setup, shard and weights over HTTP as `fedvla join` does, recording their updates.
 fn spawn_clients(
     addr: std::net::SocketAddr,
+    count: usize,
     hang_from_round: Option<u64>,
 ) -> Vec<(std::thread::JoinHandle<ClientSummary>, Updates)> {
-    (0..3u32)
+    (0..u32::try_from(count).unwrap())
         .map(|shard| {
             let updates = Updates::default();
             let recorded = updates.clone();
@@ -280,6 +285,61 @@ async fn scaffold_corrects_the_clients_of_the_tiny_smolvla() {
     }
 }
 
+/// Every strategy, and both wrappers (update clipping, client-level DP with fixed and adaptive clipping), federates
+/// the tiny SmolVLA over loopback: the real model's tensors go through each rule as the volunteers' wire brings
+/// them, every update is accepted, and every round's global model moves, stays finite and evaluates to a finite
+/// held-out loss. (What each rule computes is checked by hand in its unit tests, and on a least-squares
+/// workload whose loss must fall in `federation.rs`.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_strategy_federates_the_tiny_smolvla() {
+    let tmp = tempfile::tempdir().unwrap();
+    // The server holds 2 of 16 out, leaving 2 (one trained, one held out) for each of Bulyan's 7 clients.
+    let data = dataset_of(tmp.path(), 16);
+    let five = "num-clients=5 min-clients=5 min-fit=5 krum-f=1";
+    let seven = "num-clients=7 min-clients=7 min-fit=7 krum-f=1";
+    for (index, (strategy, extra)) in [
+        ("fedavg", "clip-update-norm=0.5"),
+        ("fedprox", "proximal-mu=0.1"),
+        ("fedavgm", "server-momentum=0.5"),
+        ("fedadagrad", "server-lr=0.01"),
+        ("fedyogi", "server-lr=0.01"),
+        ("fedadam", "server-lr=0.01"),
+        ("median", ""),
+        ("trimmed-mean", ""),
+        ("krum", five),
+        ("multi-krum", five),
+        ("bulyan", seven),
+        ("qfedavg", ""),
+        ("scaffold", ""),
+        ("fedavg", "dp-noise-multiplier=0.5 dp-clip-norm=0.1"),
+        ("fedadam", "server-lr=0.01 dp-noise-multiplier=0.5 dp-clip-norm=0.1 dp-clip-quantile=0.5"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let cfg = config(&data, &tmp.path().join(format!("run_{index}")), 3)
+            .with_overrides(&format!("strategy={strategy} {extra} rollout-episodes=0 client-rollout-episodes=0"))
+            .unwrap();
+        let run = run_with(cfg).await;
+        let lines = fedvla_aggregator::records::read_metrics(&run.dir).unwrap();
+        let mut previous = run.initial.clone();
+        for round in 1..=2 {
+            let global = NamedTensors::from_safetensors(
+                &std::fs::read(run.dir.join(format!("global_model/round_{round}")).join(TRAINABLE_FILE)).unwrap(),
+            )
+            .unwrap();
+            assert!(global.iter().all(|(_, t)| t.values.iter().all(|v| v.is_finite())), "{strategy} {extra}");
+            assert_ne!(global, previous, "{strategy} {extra}: round {round} moved nothing");
+            let loss = lines[round].global.as_ref().and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss;
+            assert!(loss.is_finite(), "{strategy} {extra}: round {round}'s held-out loss {loss}");
+            assert_eq!(lines[round].privacy.is_some(), extra.contains("dp-"), "{strategy} {extra}");
+            previous = global;
+        }
+        assert_eq!(run.updates.len(), run.cfg.num_clients, "{strategy} {extra}");
+        assert!(run.updates.iter().all(|u| u.len() == 2), "{strategy} {extra}: every client trained both rounds");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn client_shards_download_over_http_with_size_and_checksum() {
     let tmp = tempfile::tempdir().unwrap();
@@ -332,7 +392,7 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
     // First life: the clients hang in round 2, so the kill lands while round 2 is in flight. Their threads stay
     // parked on the hang; the test does not wait for them.
     let handle = start(cfg, run_dir).await;
-    let _stuck = spawn_clients(handle.addr(), Some(2));
+    let _stuck = spawn_clients(handle.addr(), 3, Some(2));
     let mut status = handle.status();
     status.wait_for(|s| s.completed_rounds == 1).await.unwrap();
     handle.kill();
@@ -343,7 +403,7 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
     let (run_dir, cfg) = RunDir::open(&dir).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     assert_eq!(handle.status().borrow().completed_rounds, 1);
-    let clients = spawn_clients(handle.addr(), None);
+    let clients = spawn_clients(handle.addr(), 3, None);
     assert_eq!(handle.finish().await.unwrap().completed_rounds, 2);
     let mut updates = Vec::new();
     for (thread, recorded) in clients {

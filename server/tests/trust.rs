@@ -79,7 +79,8 @@ fn overflowing_update() -> fedvla_federation::NamedTensors {
 #[tokio::test]
 async fn an_update_that_breaks_the_evaluation_is_dropped_and_the_rest_aggregated() {
     let base = tempfile::tempdir().unwrap();
-    let cfg = config("num-server-rounds=1 min-clients=3 min-fit=2");
+    // The evaluation's check alone: the norm screen would leave this update out before any aggregate.
+    let cfg = config("num-server-rounds=1 min-clients=3 min-fit=2 update-norm-factor=0");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     let good: Vec<_> = (0..2).map(|shard| spawn_client(&handle, shard, None)).collect();
@@ -301,6 +302,7 @@ async fn downloads_of_a_run_with_an_auth_token_need_it() {
             tokio::spawn(async move {
                 fedvla_server::native_client::volunteer(
                     &url,
+                    None,
                     &format!("client-{shard}"),
                     Some(shard),
                     Some("s3cret".into()),

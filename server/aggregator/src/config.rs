@@ -188,6 +188,7 @@ pub struct RunConfig {
     pub krum_f: usize,
     pub krum_keep: usize,
     pub clip_update_norm: f64,
+    pub update_norm_factor: f64,
     pub dp_noise_multiplier: f64,
     pub dp_clip_norm: f64,
     pub dp_clip_quantile: f64,
@@ -220,6 +221,8 @@ pub struct RunConfig {
     pub rollout_max_frames: u32,
     pub round_deadline_ms: u64,
     pub listen: String,
+    pub tls_cert: String,
+    pub tls_key: String,
     pub max_frame_bytes: usize,
     pub auth_token: String,
     pub operator_token: String,
@@ -316,6 +319,12 @@ impl RunConfig {
     /// The token clients must present (`auth-token`), or `None` for a public run.
     pub fn auth_token(&self) -> Option<&str> {
         Some(self.auth_token.as_str()).filter(|t| !t.is_empty())
+    }
+
+    /// The certificate chain and private key files the server presents over TLS (`tls-cert`, `tls-key`), or
+    /// `None` to listen in plain HTTP.
+    pub fn tls_files(&self) -> Option<(&Path, &Path)> {
+        (!self.tls_cert.is_empty()).then(|| (Path::new(&self.tls_cert), Path::new(&self.tls_key)))
     }
 
     /// Whether client-level DP-FedAvg wraps the strategy.
@@ -472,8 +481,17 @@ impl RunConfig {
                 self.attackers, self.num_clients, self.attack_strength
             ));
         }
+        if self.tls_cert.is_empty() != self.tls_key.is_empty() {
+            return fail(format!(
+                "tls-cert ({:?}) and tls-key ({:?}) go together: set both to serve TLS, neither for plain HTTP",
+                self.tls_cert, self.tls_key
+            ));
+        }
         if !(self.clip_update_norm.is_finite() && self.clip_update_norm >= 0.0) {
             return fail(format!("clip-update-norm must be 0 (off) or positive, got {}", self.clip_update_norm));
+        }
+        if !(self.update_norm_factor == 0.0 || self.update_norm_factor.is_finite() && self.update_norm_factor >= 1.0) {
+            return fail(format!("update-norm-factor must be 0 (off) or at least 1, got {}", self.update_norm_factor));
         }
         self.validate_dp()?;
         UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).map_err(ConfigError::Invalid)?;

@@ -59,6 +59,17 @@ pub struct MetricsLine {
     pub privacy: Option<PrivacyReport>,
 }
 
+impl MetricsLine {
+    /// The update norms of the clients whose updates went into the round's aggregate; `None` when the round was
+    /// skipped (nothing went in).
+    pub fn accepted_update_norms(&self) -> Option<Vec<f64>> {
+        if self.skipped.is_some() {
+            return None;
+        }
+        Some(self.clients.iter().filter(|c| c.accepted).filter_map(|c| c.update_norm).collect())
+    }
+}
+
 /// A global model's figures: its held-out evaluation and its rollouts in the sim.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct GlobalMetrics {
@@ -92,6 +103,10 @@ pub struct ClientRecord {
     pub train_loss: Option<f64>,
     /// Bytes of its update's binary frames, headers included.
     pub update_bytes: Option<u64>,
+    /// The L2 norm of its update's change from the round's global model, over every trained value (what
+    /// clipping and the robust rules judge; the scale a clipping norm is chosen on).
+    #[serde(default)]
+    pub update_norm: Option<f64>,
     /// Seconds it spent on the round, as it reported.
     pub seconds: Option<f64>,
     pub bytes_up: Option<u64>,

@@ -1,8 +1,9 @@
 //! The HTTP listener: serves the app on every accepted connection (with upgrades, for the WebSocket) under the
 //! bounds a server that strangers connect to needs. At most `max-connections` sockets are open at once (one more
 //! is closed as soon as it is accepted, and counted); a request head must arrive whole within
-//! `header-read-timeout-ms`; a socket on which nothing moves either way for `idle-timeout-ms` is closed (the
-//! WebSocket pings idle volunteers well within that, see [`HttpLimits::keepalive`]).
+//! `header-read-timeout-ms` (with TLS, the handshake too); a socket on which nothing moves either way for
+//! `idle-timeout-ms` is closed (the WebSocket pings idle volunteers well within that, see
+//! [`HttpLimits::keepalive`]).
 
 use std::io;
 use std::pin::Pin;
@@ -18,6 +19,7 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tokio::time::{Instant, Sleep};
+use tokio_rustls::TlsAcceptor;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
@@ -42,12 +44,13 @@ impl HttpLimits {
     }
 }
 
-/// Accepts connections on `listener` and serves `app` on each until `shutdown`, then gives open requests
-/// [`SHUTDOWN_GRACE`] to finish. Refused connections are counted on the console.
+/// Accepts connections on `listener` and serves `app` on each until `shutdown` (over TLS with `tls`), then gives
+/// open requests [`SHUTDOWN_GRACE`] to finish. Refused connections are counted on the console.
 pub async fn serve(
     listener: TcpListener,
     app: Router,
     limits: HttpLimits,
+    tls: Option<TlsAcceptor>,
     console: ConsoleHub,
     shutdown: CancellationToken,
 ) -> io::Result<()> {
@@ -77,16 +80,24 @@ pub async fn serve(
         if let Err(e) = stream.set_nodelay(true) {
             tracing::debug!(error = %e, "TCP_NODELAY not set");
         }
-        let io = TokioIo::new(Watched::new(stream, limits.idle_timeout, permit));
-        let conn = builder.serve_connection(io, TowerToHyperService::new(app.clone())).with_upgrades();
-        let shutdown = shutdown.clone();
+        let stream = Watched::new(stream, limits.idle_timeout, permit);
+        let (builder, app, tls, shutdown) = (builder.clone(), app.clone(), tls.clone(), shutdown.clone());
         connections.spawn(async move {
-            let mut conn = std::pin::pin!(conn);
-            let result = tokio::select! {
-                result = conn.as_mut() => result,
-                () = shutdown.cancelled() => {
-                    conn.as_mut().graceful_shutdown();
-                    conn.await
+            let result = match tls {
+                None => serve_connection(&builder, stream, app, &shutdown).await,
+                Some(acceptor) => {
+                    let handshake = tokio::time::timeout(limits.header_read_timeout, acceptor.accept(stream));
+                    match handshake.await {
+                        Ok(Ok(stream)) => serve_connection(&builder, stream, app, &shutdown).await,
+                        Ok(Err(e)) => {
+                            tracing::debug!(%peer, error = %e, "TLS handshake failed");
+                            return;
+                        }
+                        Err(_) => {
+                            tracing::debug!(%peer, "TLS handshake timed out");
+                            return;
+                        }
+                    }
                 }
             };
             if let Err(e) = result {
@@ -99,6 +110,27 @@ pub async fn serve(
         tracing::info!("closing connections still open after {SHUTDOWN_GRACE:?}");
     }
     Ok(())
+}
+
+/// Serves `app` on one connection (with upgrades, for the WebSocket) until it ends, or gracefully after `shutdown`.
+async fn serve_connection<S>(
+    builder: &http1::Builder,
+    stream: S,
+    app: Router,
+    shutdown: &CancellationToken,
+) -> Result<(), hyper::Error>
+where
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+{
+    let conn = builder.serve_connection(TokioIo::new(stream), TowerToHyperService::new(app)).with_upgrades();
+    let mut conn = std::pin::pin!(conn);
+    tokio::select! {
+        result = conn.as_mut() => result,
+        () = shutdown.cancelled() => {
+            conn.as_mut().graceful_shutdown();
+            conn.await
+        }
+    }
 }
 
 /// A TCP stream that fails with `TimedOut` once nothing has been read or written for `idle`, and holds its place

@@ -1,7 +1,8 @@
 //! The federation's HTTP/WebSocket app over the aggregator (`fedvla-aggregator`): `app(state) -> Router` with
 //! the federation WebSocket ([`connection`]), the volunteers' downloads and uploads ([`volunteer`]), the
 //! operator console ([`console`]) and, for every other path, the pages under `www-dir` ([`static_files`]);
-//! the listener that serves it under bounds ([`http`]); and starting a whole server ([`server`]).
+//! the listener that serves it under bounds ([`http`]), over TLS where the run has a certificate ([`tls`]); and
+//! starting a whole server ([`server`]).
 
 pub mod auth;
 pub mod connection;
@@ -11,6 +12,7 @@ pub mod http;
 pub mod server;
 pub mod state;
 pub mod static_files;
+pub mod tls;
 pub mod volunteer;
 
 use axum::Router;

@@ -23,6 +23,7 @@ use crate::app;
 use crate::console::ConsoleHub;
 use crate::http::{self, HttpLimits};
 use crate::state::{AppState, ConsoleState, SocketState, VolunteerState, WwwState};
+use crate::tls::{self, TlsError};
 
 /// Headroom over the exact update size before an update counts as oversized.
 const UPDATE_HEADROOM_BYTES: u64 = 64 * 1024;
@@ -35,6 +36,8 @@ pub enum StartError {
     Spec(TensorError),
     #[error("listener: {0}")]
     Io(#[from] std::io::Error),
+    #[error("TLS: {0}")]
+    Tls(#[from] TlsError),
 }
 
 /// A running server.
@@ -50,6 +53,7 @@ pub struct ServerHandle {
 /// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
 pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, StartError> {
     let ServerParts { config, run_dir, initial, mut strategy, evaluator, exporters, volunteer } = parts;
+    let tls = config.tls_files().map(|(cert, key)| tls::acceptor(cert, key)).transpose()?;
     let spec = Arc::new(initial.spec());
     let completed = run_dir.last_completed_round()?;
     let global = match completed {
@@ -126,12 +130,13 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     let addr = listener.local_addr()?;
     let coordinator = tokio::spawn(coordinator.run());
     let shutdown = cancel.clone();
-    let http = tokio::spawn(http::serve(listener, app(state), http_limits, console, shutdown));
-    tracing::info!(%addr, "listening");
+    let scheme = if tls.is_some() { "https" } else { "http" };
+    let http = tokio::spawn(http::serve(listener, app(state), http_limits, tls, console, shutdown));
+    tracing::info!(%addr, scheme, "listening");
     if generated_token {
-        tracing::info!("console: http://{addr}/console  token: {operator_token}");
+        tracing::info!("console: {scheme}://{addr}/console  token: {operator_token}");
     } else {
-        tracing::info!("console: http://{addr}/console  (token: operator-token of the run configuration)");
+        tracing::info!("console: {scheme}://{addr}/console  (token: operator-token of the run configuration)");
     }
     Ok(ServerHandle { addr, cancel, status, operator_token, coordinator, http })
 }

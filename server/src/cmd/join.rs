@@ -2,14 +2,19 @@
 //! the policy configuration and the frozen weights), then runs the shared round loop
 //! (`fedvla_server::native_client::volunteer`).
 
+use std::path::PathBuf;
+
 use fedvla_federation::{ClientError, ClientEvent, ErrorCode};
 use fedvla_server::native_client;
 use tracing_subscriber::filter::LevelFilter;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Server address: ws://host:port or http://host:port.
+    /// Server address: ws://host:port or http://host:port, or over TLS wss://host:port or https://host:port.
     url: String,
+    /// A TLS server's certificate (PEM) to trust besides the Mozilla roots: a server with a self-signed one.
+    #[arg(long)]
+    ca_cert: Option<PathBuf>,
     /// Name shown to the server; the same name gets the same shard back after a restart (defaults to a random
     /// native-XXXXXX).
     #[arg(long)]
@@ -27,6 +32,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_aggregator::sessions::random_token()[..6]));
     let result = super::support::runtime()?.block_on(native_client::volunteer(
         &args.url,
+        args.ca_cert.as_deref(),
         &name,
         args.shard,
         args.auth_token,

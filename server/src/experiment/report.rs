@@ -12,6 +12,7 @@ use super::config::{ExperimentConfig, FINAL_FILE, Mode, read_final};
 use super::plot::{Curve, plot_curves};
 use super::stats::Interval;
 use fedvla_aggregator::records::read_metrics;
+use fedvla_federation::PrivacyReport;
 
 pub const REPORT_JSON: &str = "report.json";
 pub const REPORT_MD: &str = "report.md";
@@ -45,6 +46,25 @@ pub struct ArmReport {
     pub mean_success_length: Option<f64>,
     /// Federated arms: their success over the centralized arm's, paired by seed.
     pub ratio_to_centralized: Option<Ratio>,
+    /// Arms under client-level DP: the privacy their rounds spent.
+    pub privacy: Option<ArmPrivacy>,
+}
+
+/// The privacy a DP arm's rounds spent. The accountant's epsilon depends only on the sampling rate, the noise
+/// multiplier and the rounds, so every seed of an arm spends the same: this is its first seed's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ArmPrivacy {
+    pub noise_multiplier: f64,
+    pub sampling_rate: f64,
+    pub delta: f64,
+    /// Epsilon at `delta` after each round.
+    pub epsilon_per_round: Vec<RoundEpsilon>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RoundEpsilon {
+    pub round: u64,
+    pub epsilon: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -76,6 +96,8 @@ struct RunFigures {
     success_lengths: Vec<f64>,
     train_seconds: f64,
     curve: Vec<CurvePoint>,
+    /// Every round's privacy report, for runs under client-level DP.
+    privacy: Vec<(u64, PrivacyReport)>,
 }
 
 /// One evaluated round of a run: (round, held-out loss, the round's sim success rate where it was rolled out).
@@ -108,6 +130,7 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         success_lengths: episodes.iter().filter(|e| e.success).map(|e| f64::from(e.length)).collect(),
         train_seconds: final_eval.train_seconds,
         curve,
+        privacy: metrics.iter().filter_map(|l| Some((l.round, l.privacy?))).filter(|(round, _)| *round > 0).collect(),
     })
 }
 
@@ -162,6 +185,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
                 (Mode::Federated, Some(central)) => Some(ratio(runs, central)),
                 _ => None,
             },
+            privacy: arm_privacy(&runs[0]),
         });
     }
     let report =
@@ -197,6 +221,20 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         &curves(|p| p.2),
     )?;
     Ok(report)
+}
+
+fn arm_privacy(run: &RunFigures) -> Option<ArmPrivacy> {
+    let (_, first) = run.privacy.first()?;
+    Some(ArmPrivacy {
+        noise_multiplier: first.noise_multiplier,
+        sampling_rate: first.sampling_rate,
+        delta: first.spent.delta,
+        epsilon_per_round: run
+            .privacy
+            .iter()
+            .map(|(round, p)| RoundEpsilon { round: *round, epsilon: p.spent.epsilon })
+            .collect(),
+    })
 }
 
 /// Rounds until the run's per-round success first reached 90% of its final success.
@@ -242,6 +280,12 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
          {}.., which no dataset records. Base run configuration: `{}`.\n",
         config.seeds, report.eval_episodes, report.eval_seed, config.run_config
     );
+    md.push_str("Arms, with their overrides of the base configuration:\n\n");
+    for arm in &config.arms {
+        let overrides = if arm.run_config.is_empty() { "none".to_owned() } else { format!("`{}`", arm.run_config) };
+        let _ = writeln!(md, "- `{}` ({:?}): {overrides}", arm.name, arm.mode);
+    }
+    md.push('\n');
     md.push_str("| arm | held-out loss | action MSE | action L1 | sim success | success, pooled (Wilson) | federated / centralized | rounds to 90% | train time (s) | mean successful length |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
     for arm in &report.arms {
@@ -274,5 +318,36 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
         );
     }
     md.push_str("\nPlots: `heldout_loss.png`, `success_rate.png` (per round, the runs' own rollouts).\n");
+    privacy_markdown(&mut md, report);
     md
+}
+
+/// The DP arms' privacy: their noise, and epsilon after every round (a row per round, a column per arm).
+fn privacy_markdown(md: &mut String, report: &Report) {
+    let dp: Vec<(&str, &ArmPrivacy)> =
+        report.arms.iter().filter_map(|a| Some((a.name.as_str(), a.privacy.as_ref()?))).collect();
+    let Some((_, first)) = dp.first() else { return };
+    let _ = writeln!(
+        md,
+        "\n## Privacy spent (client-level DP-FedAvg)\n\nEpsilon at delta = {:e} after each round, by the RDP \
+         accountant of the sampled Gaussian mechanism (`fedvla_federation::accountant`).\n",
+        first.delta
+    );
+    let _ = writeln!(md, "| | {} |", dp.iter().map(|(name, _)| *name).collect::<Vec<_>>().join(" | "));
+    let _ = writeln!(md, "|---|{}", "---|".repeat(dp.len()));
+    let row = |label: &str, cell: &dyn Fn(&ArmPrivacy) -> String| {
+        format!("| {label} | {} |\n", dp.iter().map(|(_, p)| cell(p)).collect::<Vec<_>>().join(" | "))
+    };
+    md.push_str(&row("noise multiplier", &|p| format!("{}", p.noise_multiplier)));
+    md.push_str(&row("sampling rate", &|p| format!("{:.3}", p.sampling_rate)));
+    let rounds: std::collections::BTreeSet<u64> =
+        dp.iter().flat_map(|(_, p)| p.epsilon_per_round.iter().map(|e| e.round)).collect();
+    for round in rounds {
+        md.push_str(&row(&format!("round {round}"), &|p| {
+            p.epsilon_per_round
+                .iter()
+                .find(|e| e.round == round)
+                .map_or("-".to_owned(), |e| format!("{:.3}", e.epsilon))
+        }));
+    }
 }

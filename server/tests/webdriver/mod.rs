@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use fedvla_server::native_client::http_request;
+use fedvla_server::native_client::{Dialer, http_request};
 use hyper::body::Bytes;
 use serde_json::{Value, json};
 
@@ -46,7 +46,8 @@ fn chromium() -> String {
 
 pub struct Browser {
     driver: Child,
-    authority: String,
+    /// chromedriver's own HTTP endpoint.
+    driver_address: Dialer,
     session: String,
     _profile: tempfile::TempDir,
 }
@@ -61,10 +62,10 @@ impl Browser {
             .stderr(Stdio::null())
             .spawn()
             .expect("chromedriver starts");
-        let authority = format!("127.0.0.1:{port}");
+        let driver_address = Dialer::plain(&format!("127.0.0.1:{port}"));
         let profile = tempfile::tempdir().unwrap();
         let started = Instant::now();
-        while http_request(&authority, hyper::Request::get("/status"), Bytes::new()).await.is_err() {
+        while http_request(&driver_address, hyper::Request::get("/status"), Bytes::new()).await.is_err() {
             assert!(started.elapsed() < Duration::from_secs(20), "chromedriver did not answer within 20 s");
             tokio::time::sleep(Duration::from_millis(100)).await;
         }
@@ -89,7 +90,7 @@ impl Browser {
             "goog:chromeOptions": { "binary": chromium(), "args": args },
             "goog:loggingPrefs": { "browser": "ALL" },
         }}});
-        let mut browser = Self { driver, authority, session: String::new(), _profile: profile };
+        let mut browser = Self { driver, driver_address, session: String::new(), _profile: profile };
         let created = browser.command("POST", "/session", capabilities).await;
         browser.session = created["sessionId"].as_str().expect("a session id").to_owned();
         browser
@@ -99,7 +100,7 @@ impl Browser {
     async fn command(&self, method: &str, path: &str, body: Value) -> Value {
         let request = hyper::Request::builder().method(method).uri(path).header("content-type", "application/json");
         let body = if body.is_null() { Bytes::new() } else { Bytes::from(body.to_string()) };
-        let reply = http_request(&self.authority, request, body)
+        let reply = http_request(&self.driver_address, request, body)
             .await
             .unwrap_or_else(|e| panic!("WebDriver {method} {path}: {e}"));
         let reply: Value = serde_json::from_slice(&reply).expect("WebDriver JSON");

@@ -331,7 +331,12 @@ pub enum ErrorCode {
     ShapeMismatch,
     NonFinite,
     UnexpectedMessage,
+    /// An update for another round than the one running (late, or sent when none runs).
     StaleRound,
+    /// A second update from a client in the same round.
+    DuplicateUpdate,
+    /// An update for the running round from a client the round did not sample.
+    UnrequestedUpdate,
     ShuttingDown,
     /// A volunteer name that is empty or longer than [`MAX_NAME_BYTES`].
     InvalidName,
@@ -340,6 +345,9 @@ pub enum ErrorCode {
     /// An update dropped after aggregation: the aggregate or its evaluation failed and this update was the one
     /// farthest from the global model.
     DroppedUpdate,
+    /// An update left out of the aggregate because its change from the global model is far beyond the norms seen
+    /// (`update-norm-factor`).
+    UpdateNormOutlier,
 }
 
 impl ErrorCode {
@@ -365,10 +373,13 @@ impl ErrorCode {
             Self::NonFinite => "non_finite",
             Self::UnexpectedMessage => "unexpected_message",
             Self::StaleRound => "stale_round",
+            Self::DuplicateUpdate => "duplicate_update",
+            Self::UnrequestedUpdate => "unrequested_update",
             Self::ShuttingDown => "shutting_down",
             Self::InvalidName => "invalid_name",
             Self::UnknownShard => "unknown_shard",
             Self::DroppedUpdate => "dropped_update",
+            Self::UpdateNormOutlier => "update_norm_outlier",
         }
     }
 }
@@ -462,9 +473,15 @@ mod tests {
 
     #[test]
     fn code_strings_match_serde() {
-        for code in
-            [ErrorCode::ProtocolVersion, ErrorCode::StaleRound, ErrorCode::MalformedFrame, ErrorCode::DroppedUpdate]
-        {
+        for code in [
+            ErrorCode::ProtocolVersion,
+            ErrorCode::StaleRound,
+            ErrorCode::DuplicateUpdate,
+            ErrorCode::UnrequestedUpdate,
+            ErrorCode::MalformedFrame,
+            ErrorCode::DroppedUpdate,
+            ErrorCode::UpdateNormOutlier,
+        ] {
             assert_eq!(serde_json::to_string(&code).unwrap(), format!("\"{}\"", code.as_str()));
         }
     }

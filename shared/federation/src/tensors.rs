@@ -76,23 +76,40 @@ impl NamedTensors {
     /// `f(self, other)` value by value, for two sets of the same names and shapes (deltas from a global model and
     /// back).
     pub fn zip_map(&self, other: &NamedTensors, f: impl Fn(f32, f32) -> f32) -> Result<NamedTensors, TensorError> {
+        let mut out = NamedTensors::new();
+        for (name, t, o) in self.paired(other)? {
+            let values = t.values.iter().zip(&o.values).map(|(&a, &b)| f(a, b)).collect();
+            out.tensors.insert(name.to_owned(), Tensor { shape: t.shape.clone(), values });
+        }
+        Ok(out)
+    }
+
+    /// The L2 norm of `self - other` over every value, in f64: how far a client's update moved from the global
+    /// model it started from.
+    pub fn distance(&self, other: &NamedTensors) -> Result<f64, TensorError> {
+        let squares = self.paired(other)?.into_iter().flat_map(|(_, t, o)| t.values.iter().zip(&o.values));
+        Ok(squares.map(|(&a, &b)| (f64::from(a) - f64::from(b)).powi(2)).sum::<f64>().sqrt())
+    }
+
+    /// Each tensor beside `other`'s of the same name, in name order, once both sets hold the same names and shapes.
+    fn paired<'a>(&'a self, other: &'a NamedTensors) -> Result<Vec<(&'a str, &'a Tensor, &'a Tensor)>, TensorError> {
         if let Some(name) = other.tensors.keys().find(|n| !self.tensors.contains_key(*n)) {
             return Err(TensorError::Unexpected(name.clone()));
         }
-        let mut out = NamedTensors::new();
-        for (name, t) in &self.tensors {
-            let o = other.tensors.get(name).ok_or_else(|| TensorError::Missing(name.clone()))?;
-            if o.shape != t.shape {
-                return Err(TensorError::ShapeMismatch {
-                    name: name.clone(),
-                    expected: t.shape.clone(),
-                    got: o.shape.clone(),
-                });
-            }
-            let values = t.values.iter().zip(&o.values).map(|(&a, &b)| f(a, b)).collect();
-            out.tensors.insert(name.clone(), Tensor { shape: t.shape.clone(), values });
-        }
-        Ok(out)
+        self.tensors
+            .iter()
+            .map(|(name, t)| {
+                let o = other.tensors.get(name).ok_or_else(|| TensorError::Missing(name.clone()))?;
+                if o.shape != t.shape {
+                    return Err(TensorError::ShapeMismatch {
+                        name: name.clone(),
+                        expected: t.shape.clone(),
+                        got: o.shape.clone(),
+                    });
+                }
+                Ok((name.as_str(), t, o))
+            })
+            .collect()
     }
 
     /// Number of f32 values over all tensors.
@@ -235,6 +252,20 @@ mod tests {
         assert_eq!(t.byte_size(), 24);
         assert_eq!(t.spec().byte_size(), 24);
         assert_eq!(t.iter().map(|(n, _)| n).collect::<Vec<_>>(), ["a", "b"]);
+    }
+
+    #[test]
+    fn distance_is_the_l2_norm_of_the_difference_over_every_tensor() {
+        let mut a = NamedTensors::new();
+        a.insert("x", vec![2], vec![1.0, 2.0]).unwrap();
+        a.insert("y", vec![1], vec![-1.0]).unwrap();
+        let mut b = NamedTensors::new();
+        b.insert("x", vec![2], vec![1.0, -2.0]).unwrap();
+        b.insert("y", vec![1], vec![2.0]).unwrap();
+        // (0, 4, -3): norm 5, either way round.
+        assert_eq!(a.distance(&b).unwrap(), 5.0);
+        assert_eq!(b.distance(&a).unwrap(), 5.0);
+        assert!(matches!(a.distance(&sample()), Err(TensorError::Unexpected(_) | TensorError::Missing(_))));
     }
 
     #[test]

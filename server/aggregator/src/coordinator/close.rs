@@ -1,5 +1,6 @@
-//! Closing a round: the strategy's aggregate of its updates, checked (finite, and finite when evaluated) and on
-//! failure formed again without the update farthest from the global model, then saved and published.
+//! Closing a round: the updates screened for norms far beyond those seen, the strategy's aggregate of the rest,
+//! checked (finite, and finite when evaluated) and on failure formed again without the update farthest from the
+//! global model, then saved and published.
 
 use std::sync::Arc;
 
@@ -86,6 +87,38 @@ impl Running {
         }
     }
 
+    /// Leaves out of the round every update whose change from the global model is more than `update-norm-factor`
+    /// times the reference norm: the median of the norms of this round's updates and of the previous round's
+    /// accepted ones, which a minority of volunteers scaling their changes up cannot move. Each is recorded as
+    /// the client's `dropped` reason, logged and counted as [`ErrorCode::UpdateNormOutlier`].
+    pub(super) fn screen_norms(
+        &mut self,
+        round: u64,
+        updates: Vec<RoundUpdate>,
+        state: &mut RoundState,
+    ) -> Vec<RoundUpdate> {
+        let factor = self.c.config.update_norm_factor;
+        if factor == 0.0 || updates.is_empty() {
+            return updates;
+        }
+        let mut seen: Vec<f64> = updates.iter().map(|u| u.norm).chain(self.accepted_norms.iter().copied()).collect();
+        seen.sort_by(f64::total_cmp);
+        let reference = seen[seen.len() / 2];
+        let (kept, outliers): (Vec<_>, Vec<_>) = updates.into_iter().partition(|u| u.norm <= factor * reference);
+        for update in outliers {
+            let reason = format!(
+                "its change from the global model has norm {:.4e}, over {factor} x the median norm {reference:.4e}",
+                update.norm
+            );
+            tracing::warn!(round, client_id = update.client_id, %reason, "update left out of the aggregate");
+            if let Some(p) = state.participants.get_mut(&update.client_id) {
+                p.dropped = Some(reason);
+            }
+            self.count(ErrorCode::UpdateNormOutlier);
+        }
+        kept
+    }
+
     pub(super) async fn evaluate(&mut self, round: u64, model: Arc<NamedTensors>) -> Result<EvalMetrics, BoxError> {
         let evaluator = Arc::clone(&self.c.evaluator);
         let metrics = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&model)).await?;
@@ -140,17 +173,9 @@ impl Running {
     }
 }
 
-/// Index of the update farthest (Euclidean) from `global`: after a failed aggregate, the likeliest culprit.
+/// Index of the update farthest (Euclidean) from `global`: after a failed aggregate, the likeliest culprit (one that
+/// does not fit the model first of all).
 fn farthest(global: &NamedTensors, updates: &[RoundUpdate]) -> usize {
-    let distance = |update: &NamedTensors| -> f64 {
-        global
-            .iter()
-            .map(|(name, g)| {
-                let u = update.get(name).map_or(&[][..], |t| t.values.as_slice());
-                g.values.iter().zip(u).map(|(a, b)| (f64::from(*b) - f64::from(*a)).powi(2)).sum::<f64>()
-            })
-            .sum()
-    };
-    let distances: Vec<f64> = updates.iter().map(|u| distance(&u.tensors)).collect();
+    let distances: Vec<f64> = updates.iter().map(|u| u.tensors.distance(global).unwrap_or(f64::INFINITY)).collect();
     (0..updates.len()).max_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap_or(0)
 }

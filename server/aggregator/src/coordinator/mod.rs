@@ -24,11 +24,20 @@ pub use self::state::{Coordinator, CoordinatorError, Event, PublishedModel, RunS
 use self::state::{Running, blocking};
 use crate::control::{RunState, Settings};
 use crate::events::RunEvent;
-use crate::records::MetricsLine;
+use crate::records::{MetricsLine, read_metrics};
 
 impl Coordinator {
     pub async fn run(self) -> Result<RunStatus, CoordinatorError> {
-        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new() };
+        // A resumed run screens its next round's updates against the norms its last aggregated round accepted, as
+        // it would have gone on.
+        let accepted_norms = match self.completed {
+            Some(_) => read_metrics(self.run_dir.path())
+                .ok()
+                .and_then(|lines| lines.iter().rev().find_map(MetricsLine::accepted_update_norms))
+                .unwrap_or_default(),
+            None => Vec::new(),
+        };
+        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new(), accepted_norms };
         let result = this.run().await;
         match &result {
             Err(CoordinatorError::Cancelled) => tracing::info!("coordinator cancelled"),
@@ -110,7 +119,17 @@ impl Running {
                 continue;
             }
             let evaluate = round.is_multiple_of(self.c.config.eval_every) || round == self.c.config.num_server_rounds;
-            let outcome = self.aggregate_checked(round, updates, evaluate, &mut state).await?;
+            let updates = self.screen_norms(round, updates, &mut state);
+            let outcome = if updates.len() < self.c.config.min_fit {
+                let reason = format!(
+                    "{} of {count} updates passed the norm screen, fewer than min-fit ({})",
+                    updates.len(),
+                    self.c.config.min_fit
+                );
+                close::Aggregated::Skipped { reason }
+            } else {
+                self.aggregate_checked(round, updates, evaluate, &mut state).await?
+            };
             let mut line = MetricsLine {
                 attempt: Some(attempt),
                 seconds: Some(started.elapsed().as_secs_f64()),
@@ -128,6 +147,9 @@ impl Running {
                 }
             };
             let line = self.persist(round, line, eval).await?;
+            if let Some(norms) = line.accepted_update_norms() {
+                self.accepted_norms = norms;
+            }
             self.broadcast(ServerMessage::RoundClosed {
                 round,
                 accepted: true,

@@ -43,11 +43,14 @@ pub(super) struct Participant {
 }
 
 /// What the round keeps of an accepted update besides its tensors.
+#[derive(Clone, Copy)]
 struct AcceptedUpdate {
     claimed_examples: u64,
     train_loss: f64,
     /// Bytes of the update's binary frames, headers included.
     bytes: u64,
+    /// The L2 norm of its change from the round's global model.
+    norm: f64,
 }
 
 pub(super) struct RoundState {
@@ -69,6 +72,8 @@ pub(super) struct RoundUpdate {
     pub key: u64,
     /// See [`Participant`]'s.
     pub lr_sum: f64,
+    /// The L2 norm of its change from the round's global model.
+    pub norm: f64,
 }
 
 impl RoundUpdate {
@@ -92,9 +97,9 @@ impl RoundState {
             .iter_mut()
             .filter_map(|(&client_id, p)| {
                 let tensors = p.model.take()?;
-                let train_loss = p.update.as_ref()?.train_loss;
+                let AcceptedUpdate { train_loss, norm, .. } = *p.update.as_ref()?;
                 let (examples, key, lr_sum) = (p.examples, p.key, p.lr_sum);
-                Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples, train_loss, key, lr_sum }))
+                Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples, train_loss, key, lr_sum, norm }))
             })
             .collect();
         updates.sort_by(|a, b| (a.0, a.1.client_id).cmp(&(b.0, b.1.client_id)));
@@ -114,6 +119,7 @@ impl RoundState {
                 dropped: p.dropped.clone(),
                 train_loss: p.update.as_ref().map(|u| u.train_loss),
                 update_bytes: p.update.as_ref().map(|u| u.bytes),
+                update_norm: p.update.as_ref().map(|u| u.norm),
                 seconds: p.metrics.as_ref().map(|m| m.seconds),
                 bytes_up: p.metrics.as_ref().map(|m| m.bytes_up),
                 bytes_down: p.metrics.as_ref().map(|m| m.bytes_down),
@@ -273,8 +279,17 @@ impl Running {
                         );
                         self.c.status_tx.send_modify(|s| s.corrected_claims += 1);
                     }
-                    p.update = Some(AcceptedUpdate { claimed_examples, train_loss, bytes });
+                    let norm = model.distance(&self.c.global).expect("into_model gave the global model's tensors");
+                    p.update = Some(AcceptedUpdate { claimed_examples, train_loss, bytes, norm });
                     p.model = Some(model);
+                }
+                Some(_) if Some(update.round) == current => {
+                    let message = format!("a second update for round {} from this client", update.round);
+                    self.refuse_update(client_id, ErrorCode::DuplicateUpdate, message);
+                }
+                None if Some(update.round) == current => {
+                    let message = format!("this client was not sampled into round {}", update.round);
+                    self.refuse_update(client_id, ErrorCode::UnrequestedUpdate, message);
                 }
                 _ => {
                     let message =

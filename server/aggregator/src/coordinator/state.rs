@@ -175,6 +175,8 @@ pub(super) struct Running {
     pub(super) clients: BTreeMap<u64, ClientEntry>,
     /// Refusals since the last metrics line.
     pub(super) round_rejections: BTreeMap<ErrorCode, u64>,
+    /// The norms of the last completed round's accepted updates (see `screen_norms`).
+    pub(super) accepted_norms: Vec<f64>,
 }
 
 /// Runs `f` on tokio's blocking pool (aggregation, evaluation, file writes), passing its panic on.

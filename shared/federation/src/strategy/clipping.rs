@@ -72,19 +72,17 @@ pub(super) fn clip_change(
     max_norm: f64,
 ) -> Option<(f64, Option<NamedTensors>)> {
     update.validate(&global.spec()).ok()?;
-    let delta = |name: &str| {
-        let (u, g) = (&update.get(name).expect("validated").values, &global.get(name).expect("own").values);
-        u.iter().zip(g).map(|(u, g)| f64::from(*u) - f64::from(*g))
-    };
-    let norm = global.iter().flat_map(|(name, _)| delta(name)).map(|d| d * d).sum::<f64>().sqrt();
+    let norm = update.distance(global).ok()?;
     if norm <= max_norm {
         return Some((norm, None));
     }
     let scale = max_norm / norm;
     let mut clipped = NamedTensors::new();
     for (name, g) in global.iter() {
-        let values = g.values.iter().zip(delta(name)).map(|(g, d)| (f64::from(*g) + d * scale) as f32).collect();
-        clipped.insert(name, g.shape.clone(), values).expect("global shape");
+        let u = &update.get(name).expect("validated").values;
+        let values =
+            g.values.iter().zip(u).map(|(g, u)| (f64::from(*g) + (f64::from(*u) - f64::from(*g)) * scale) as f32);
+        clipped.insert(name, g.shape.clone(), values.collect()).expect("global shape");
     }
     Some((norm, Some(clipped)))
 }

@@ -1,11 +1,15 @@
 //! `generate_dataset` writes what the sim's scripted expert does, bit for bit, as a LeRobot v3.0
-//! dataset that reads back with its stats, and the same options give the same files.
+//! dataset that reads back with its stats, and the same options give the same files; several tasks make
+//! one dataset whose episodes cycle through them, each with its own instruction, which LeRobot 0.6.1
+//! itself reads (when FEDVLA_LEROBOT_ENV names its checker's chroot, as tests/native-env.sh sets).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use fedvla_data::{FeatureStats, LeRobotDataset, RgbImage};
-use fedvla_sim::{Camera, FPS, JOINT_COUNT, Scene, TASK, render, run_expert_episode};
+use fedvla_sim::{
+    Arrangement, Camera, FPS, JOINT_COUNT, Scene, TASK, TaskKind, render, run_expert_episode, run_expert_episode_on,
+};
 use fedvla_workloads::datagen::{
     GenDataOptions, GenProgress, MAX_EPISODE_FRAMES, ensure_unrecorded, generate_dataset, recorded_seeds,
 };
@@ -115,7 +119,8 @@ fn same_options_write_the_same_files() {
 fn recovery_demonstrations_record_the_expert_goals_from_perturbed_states() {
     let dir = tempfile::tempdir().expect("temp dir");
     let out = dir.path().join("noisy");
-    let opts = GenDataOptions { episodes: 2, seed: 0, image_size: SIZE, action_noise_degrees: 2.0 };
+    let opts =
+        GenDataOptions { episodes: 2, seed: 0, image_size: SIZE, action_noise_degrees: 2.0, ..Default::default() };
     let summary = generate_dataset(&out, &opts, |_| {}).expect("generate");
     let recorded = recorded_seeds(&out).expect("seeds file").expect("written");
     assert_eq!((recorded.seeds, recorded.action_noise_degrees), (summary.seeds.clone(), 2.0));
@@ -218,4 +223,153 @@ fn by_layout_orders_episodes_by_where_the_cube_starts() {
     std::fs::remove_file(out.join(SEEDS_FILE)).unwrap();
     let err = episodes_to_partition(&config, &out, &dataset).expect_err("no seeds");
     assert!(format!("{err:#}").contains(SEEDS_FILE), "{err:#}");
+}
+
+/// The tasks of the multi-task datasets below: every task but the first, which the tests above record.
+const TASKS: [TaskKind; 3] = [TaskKind::Stack, TaskKind::PushToTarget, TaskKind::PickColour];
+
+/// Each episode's instruction, from the seeds file's seeds and tasks.
+fn recorded_instructions(root: &Path) -> Vec<String> {
+    let recorded = recorded_seeds(root).expect("seeds file").expect("written");
+    recorded.seeds.iter().enumerate().map(|(k, &seed)| recorded.task_of(k).instruction(seed)).collect()
+}
+
+/// The distinct strings of `strings`, sorted.
+fn distinct(strings: &[String]) -> Vec<String> {
+    let mut distinct = strings.to_vec();
+    distinct.sort();
+    distinct.dedup();
+    distinct
+}
+
+#[test]
+fn multi_task_episodes_cycle_through_the_tasks_each_with_its_own_instruction() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("tasks");
+    let opts = GenDataOptions { episodes: 4, seed: 0, tasks: TASKS.to_vec(), image_size: 32, ..Default::default() };
+    let summary = generate_dataset(&out, &opts, |_| {}).expect("generate");
+    let recorded = recorded_seeds(&out).expect("seeds file").expect("written");
+    assert_eq!((&recorded.seeds, &recorded.tasks[..]), (&summary.seeds, &TASKS[..]));
+
+    let dataset = LeRobotDataset::open(&out).expect("open");
+    let instructions: Vec<String> =
+        summary.seeds.iter().enumerate().map(|(k, &seed)| TASKS[k % TASKS.len()].instruction(seed)).collect();
+    assert_eq!(recorded_instructions(&out), instructions);
+    assert_eq!(distinct(dataset.tasks()), distinct(&instructions), "every instruction is listed, once");
+    assert_eq!(dataset.episodes().len(), 4);
+    let by_layout = fedvla_aggregator::config::RunConfig::default().with_overrides("partitioning=by-layout").unwrap();
+    let azimuths: Vec<f32> = fedvla_workloads::smolvla::episodes_to_partition(&by_layout, &out, &dataset)
+        .expect("ordered")
+        .iter()
+        .map(|e| {
+            let k = e.episode_index;
+            let cube = Arrangement::from_seed(TASKS[k % TASKS.len()], summary.seeds[k]).subject().position;
+            cube.x.atan2(-cube.y)
+        })
+        .collect();
+    assert!(azimuths.windows(2).all(|w| w[0] <= w[1]), "by-layout orders by each task's cube: {azimuths:?}");
+    for (k, (episode, &seed)) in dataset.episodes().iter().zip(&summary.seeds).enumerate() {
+        let task = TASKS[k % TASKS.len()];
+        assert_eq!(recorded.task_of(k), task, "episode {k}");
+        assert_eq!(episode.tasks, [instructions[k].clone()], "episode {k} ({task}, seed {seed})");
+        let task_index = dataset.tasks().iter().position(|t| *t == instructions[k]);
+        let expert = run_expert_episode_on(task, seed, MAX_EPISODE_FRAMES, fedvla_sim::ActionNoise::NONE);
+        assert!(expert.success, "{task} seed {seed} was recorded although the expert fails on it");
+        assert_eq!(episode.length, expert.states.len(), "{task} seed {seed}");
+        for (i, row) in (episode.dataset_from_index..episode.dataset_to_index).enumerate() {
+            assert_eq!(dataset.task_index(row), task_index, "{task} seed {seed} frame {i}");
+            assert_eq!(dataset.vector("action", row), Some(&expert.actions[i][..]), "{task} seed {seed} frame {i}");
+        }
+    }
+}
+
+/// `dir` of this package, canonical: the LeRobot checker's chroot binds host directories at the same paths.
+fn beside_the_package(dir: &str) -> PathBuf {
+    std::fs::canonicalize(Path::new(env!("CARGO_MANIFEST_DIR")).join(dir)).unwrap_or_else(|e| panic!("{dir}: {e}"))
+}
+
+/// Runs the Python `script` on `args` in LeRobot's chroot at `env` (through the checker's `run.sh`), with `dirs`
+/// bound into it; panics with its output when it fails, and returns its last line (the checkers' summary).
+fn run_in_lerobot(env: &str, dirs: &[&Path], script: &Path, args: &[&str]) -> String {
+    let hostdirs: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
+    let output = std::process::Command::new("bash")
+        .arg(beside_the_package("../../shared/tools/lerobot-check/run.sh"))
+        .arg(env)
+        .arg("python3")
+        .arg(script)
+        .args(args)
+        .env("HOSTDIR", hostdirs.join(":"))
+        .output()
+        .expect("running the LeRobot checker");
+    let log = format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
+    assert!(output.status.success(), "LeRobot refused the dataset:\n{log}");
+    String::from_utf8_lossy(&output.stdout).lines().last().unwrap_or_default().to_string()
+}
+
+#[test]
+fn gen_data_records_the_tasks_asked_for_and_lerobot_reads_each_frames_task() {
+    let tmp = tempfile::tempdir().expect("temp dir");
+    let dir = std::fs::canonicalize(tmp.path()).unwrap();
+    let out = dir.join("cli");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_fedvla"))
+        .args([
+            "gen-data",
+            "--episodes",
+            "4",
+            "--tasks",
+            "stack,cube-in-bowl,pick-colour",
+            "--image-size",
+            "32",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .expect("fedvla runs");
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let recorded = recorded_seeds(&out).expect("seeds file").expect("written");
+    assert_eq!(recorded.tasks, [TaskKind::Stack, TaskKind::CubeInBowl, TaskKind::PickColour]);
+    let instructions = recorded_instructions(&out);
+    assert_eq!((instructions[1].as_str(), instructions.len()), (TASK, 4));
+    assert_eq!(distinct(LeRobotDataset::open(&out).expect("open").tasks()), distinct(&instructions));
+
+    let Ok(env) = std::env::var("FEDVLA_LEROBOT_ENV") else {
+        eprintln!("SKIPPED: FEDVLA_LEROBOT_ENV not set; LeRobot's reading of the multi-task dataset not checked");
+        return;
+    };
+    let dataset = out.display().to_string();
+    let check_dataset = beside_the_package("../../shared/tools/lerobot-check/check_dataset.py");
+    let summary = run_in_lerobot(&env, &[&dir], &check_dataset, &[&dataset]);
+    assert!(summary.starts_with("CHECK_DATASET OK"), "{summary}");
+    println!("{summary}");
+    let scripts = beside_the_package("tests/lerobot");
+    let expected = serde_json::to_string(&instructions).unwrap();
+    let summary = run_in_lerobot(&env, &[&dir, &scripts], &scripts.join("dataset_tasks.py"), &[&dataset, &expected]);
+    assert!(summary.starts_with("CHECK_TASKS OK"), "{summary}");
+    assert!(summary.contains(&format!("tasks={}", distinct(&instructions).len())), "{summary}");
+    println!("{summary}");
+}
+
+#[test]
+fn gen_data_refuses_an_unknown_task_naming_the_known_ones() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_fedvla"))
+        .args(["gen-data", "--episodes", "1", "--tasks", "stack,juggle", "--out"])
+        .arg(dir.path().join("never"))
+        .output()
+        .expect("fedvla runs");
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && stderr.contains("\"juggle\""), "{stderr}");
+    for task in TaskKind::ALL {
+        assert!(stderr.contains(task.name()), "{stderr}");
+    }
+    assert!(!dir.path().join("never").exists());
+}
+
+#[test]
+fn the_embedded_dataset_keeps_its_directory_for_the_first_task_and_names_other_tasks() {
+    use fedvla_aggregator::config::RunConfig;
+    use fedvla_workloads::smolvla::dataset_root;
+    assert_eq!(dataset_root(&RunConfig::default()).unwrap(), Path::new("data/so100-sim/200ep_64px_noise2"));
+    let tasks = RunConfig::default().with_overrides("dataset-tasks=stack,pick-colour").unwrap();
+    assert_eq!(dataset_root(&tasks).unwrap(), Path::new("data/so100-sim/200ep_64px_noise2_stack+pick-colour"));
 }

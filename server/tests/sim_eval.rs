@@ -1,6 +1,7 @@
 //! Evaluation in the sim: the scripted expert's success rate on the evaluation seeds (the
-//! acceptance bar for the sim and the success check), a tiny random policy through `fedvla eval`,
-//! and a video that cannot be written costing no results.
+//! acceptance bar for the sim and the success check), on every task too, a tiny random policy through
+//! `fedvla eval`, a video that cannot be written costing no results, and the task names `fedvla tasks`
+//! lists, which `eval --task` takes and refuses others than.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -9,6 +10,7 @@ use std::process::{Command, Output};
 use fedvla_data::video::VideoFile;
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::{FeatureStats, NormStats, SmolVlaConfig, WordTokenizer};
+use fedvla_sim::TaskKind;
 use fedvla_workloads::sim_eval::{
     Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, RESULTS_FILE, SimEvalOptions, evaluate_in_sim, video_path,
 };
@@ -27,7 +29,8 @@ fn expert_succeeds_on_at_least_90_percent_of_24_eval_seeds() {
     let out = tempfile::tempdir().unwrap();
     let opts = SimEvalOptions { episodes: 24, seed: DEFAULT_SEED, max_frames: DEFAULT_MAX_FRAMES, video_size: None };
     let mut reported = Vec::new();
-    let summary = evaluate_in_sim(Agent::Expert, &opts, out.path(), |i, r| reported.push((i, r.seed))).unwrap();
+    let expert = Agent::Expert { task: TaskKind::CubeInBowl };
+    let summary = evaluate_in_sim(expert, &opts, out.path(), |i, r| reported.push((i, r.seed))).unwrap();
 
     let failed: Vec<u64> = summary.episodes.iter().filter(|e| !e.success).map(|e| e.seed).collect();
     let success_rate = summary.success_rate.unwrap();
@@ -135,4 +138,60 @@ fn a_video_that_cannot_be_written_keeps_every_result_and_fails_the_command() {
     assert_eq!(json["video_errors"][0]["episode"], 0);
     let second = std::fs::read(video_path(out.path(), 1)).unwrap();
     assert_eq!(&second[4..8], b"ftyp");
+}
+
+#[test]
+fn expert_solves_every_task_on_at_least_90_percent_of_10_eval_seeds() {
+    let out = tempfile::tempdir().unwrap();
+    let opts = SimEvalOptions { episodes: 10, seed: DEFAULT_SEED, max_frames: DEFAULT_MAX_FRAMES, video_size: None };
+    for task in TaskKind::ALL {
+        let summary = evaluate_in_sim(Agent::Expert { task }, &opts, out.path(), |_, _| {}).unwrap();
+        let failed: Vec<u64> = summary.episodes.iter().filter(|e| !e.success).map(|e| e.seed).collect();
+        let success_rate = summary.success_rate.unwrap();
+        assert!(success_rate >= 0.9, "{task}: success rate {success_rate}; failed seeds {failed:?}");
+        println!("{task}: {:.0}% of 10 eval seeds, mean length {:?}", success_rate * 100.0, summary.mean_length);
+    }
+}
+
+#[test]
+fn tasks_are_listed_one_a_line_and_eval_takes_them_or_names_the_known_ones() {
+    let listed = fedvla(&["tasks"]);
+    assert!(listed.status.success());
+    let names: Vec<&str> = TaskKind::ALL.iter().map(|task| task.name()).collect();
+    assert_eq!(String::from_utf8_lossy(&listed.stdout).lines().collect::<Vec<_>>(), names);
+
+    let out = tempfile::tempdir().unwrap();
+    let eval = |task: &str| {
+        let out = out.path().join(task);
+        fedvla(&[
+            "eval",
+            "--expert",
+            "--task",
+            task,
+            "--episodes",
+            "1",
+            "--video-size",
+            "0",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let run = eval("stack");
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let json = results(&out.path().join("stack"));
+    assert_eq!(json["policy"], "expert on stack");
+    assert_eq!(json["episodes"][0]["seed"], DEFAULT_SEED);
+
+    let run = eval("juggle");
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && stderr.contains("\"juggle\""), "{stderr}");
+    for name in names {
+        assert!(stderr.contains(name), "{stderr}");
+    }
+    let run = fedvla(&["eval", "--policy", "p", "--task", "stack", "--episodes", "1", "--out", "never"]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        !run.status.success() && stderr.contains("'--policy <POLICY>' cannot be used with '--task <TASK>'"),
+        "a policy is rolled out on the first task only: {stderr}"
+    );
 }

@@ -3,6 +3,7 @@
 use std::path::Path;
 
 use fedvla_federation::UpdateEncoding;
+use fedvla_sim::TaskKind;
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, thiserror::Error)]
@@ -204,6 +205,8 @@ pub struct RunConfig {
     pub dataset: String,
     pub dataset_episodes: usize,
     pub dataset_action_noise: f64,
+    #[serde(with = "task_names")]
+    pub dataset_tasks: Vec<TaskKind>,
     pub num_clients: usize,
     pub partitioning: Partitioning,
     pub model_size: String,
@@ -233,6 +236,22 @@ pub struct RunConfig {
     pub auto_start: bool,
     pub www_dir: String,
     pub output_dir: String,
+}
+
+/// A list of sim tasks as configurations and records spell it: their names ([`TaskKind::name`]); an unknown
+/// name is refused with the known ones.
+pub mod task_names {
+    use fedvla_sim::TaskKind;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(tasks: &[TaskKind], serializer: S) -> Result<S::Ok, S::Error> {
+        serializer.collect_seq(tasks.iter().map(|task| task.name()))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Vec<TaskKind>, D::Error> {
+        let names = Vec::<String>::deserialize(deserializer)?;
+        names.iter().map(|name| TaskKind::from_name(name).map_err(serde::de::Error::custom)).collect()
+    }
 }
 
 /// `configs/default.toml`, built in so the binary runs from anywhere.
@@ -269,7 +288,8 @@ impl RunConfig {
         toml::to_string(self).expect("config serializes")
     }
 
-    /// Applies space-separated `key=value` overrides (kebab-case keys, TOML values; bare words are strings).
+    /// Applies space-separated `key=value` overrides (kebab-case keys, TOML values; bare words are strings, and
+    /// for a list key a comma-separated run of bare words is a list of strings).
     pub fn with_overrides(&self, overrides: &str) -> Result<Self, ConfigError> {
         let mut table = toml::Table::try_from(self).expect("config serializes to a table");
         for pair in overrides.split_whitespace() {
@@ -511,6 +531,9 @@ impl RunConfig {
         if !(self.dataset_action_noise.is_finite() && (0.0..=20.0).contains(&self.dataset_action_noise)) {
             return fail(format!("dataset-action-noise must be in [0, 20] degrees, got {}", self.dataset_action_noise));
         }
+        if self.dataset_tasks.is_empty() {
+            return fail("dataset-tasks must name at least one task (`fedvla tasks` lists them)".into());
+        }
         if self.eval_every == 0 {
             return fail("eval-every must be at least 1".into());
         }
@@ -541,6 +564,8 @@ fn parse_value(raw: &str, current: &toml::Value) -> Result<toml::Value, String> 
         (Value::Float(_), Some(Value::Float(f))) => Ok(Value::Float(f)),
         (Value::Float(_), Some(Value::Integer(i))) => Ok(Value::Float(i as f64)),
         (Value::Boolean(_), Some(Value::Boolean(b))) => Ok(Value::Boolean(b)),
+        (Value::Array(_), Some(Value::Array(items))) => Ok(Value::Array(items)),
+        (Value::Array(_), _) => Ok(Value::Array(raw.split(',').map(|item| Value::String(item.to_owned())).collect())),
         (current, _) => Err(format!("`{raw}` is not of type {}", current.type_str())),
     }
 }
@@ -626,6 +651,30 @@ mod tests {
         assert_eq!(cfg.lr, 1.0);
         assert_eq!(cfg.partitioning, Partitioning::Iid);
         assert_eq!(cfg.dataset, "/d/x");
+    }
+
+    #[test]
+    fn dataset_tasks_default_to_the_first_task_take_a_list_and_refuse_unknown_names() {
+        use fedvla_sim::TaskKind;
+        assert_eq!(RunConfig::default().dataset_tasks, [TaskKind::CubeInBowl]);
+        let both = [TaskKind::Stack, TaskKind::PickColour];
+        for list in ["stack,pick-colour", r#"["stack","pick-colour"]"#] {
+            let cfg = RunConfig::default().with_overrides(&format!("dataset-tasks={list}")).unwrap();
+            assert_eq!(cfg.dataset_tasks, both, "{list}");
+            assert_eq!(RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(), cfg);
+        }
+        let one = RunConfig::default().with_overrides("dataset-tasks=push-to-target").unwrap();
+        assert_eq!(one.dataset_tasks, [TaskKind::PushToTarget]);
+
+        let err = RunConfig::default().with_overrides("dataset-tasks=stack,juggle").unwrap_err().to_string();
+        assert!(err.starts_with("bad value for `dataset-tasks`") && err.contains("\"juggle\""), "{err}");
+        for task in TaskKind::ALL {
+            assert!(err.contains(task.name()), "{err}");
+        }
+        let err = RunConfig::from_toml("dataset-tasks = [\"stak\"]\n", "run.toml").unwrap_err().to_string();
+        assert!(err.contains("run.toml") && err.contains("\"stak\"") && err.contains("pick-colour"), "{err}");
+        let err = RunConfig::default().with_overrides("dataset-tasks=[]").unwrap_err().to_string();
+        assert!(err.contains("dataset-tasks must name at least one task"), "{err}");
     }
 
     #[test]

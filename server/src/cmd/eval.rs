@@ -1,4 +1,4 @@
-//! `fedvla eval`: a policy (or the scripted expert) in the SO-100 sim over a range of seeds, with a
+//! `fedvla eval`: a policy (or the scripted expert, on any task) in the SO-100 sim over a range of seeds, with a
 //! video per episode and results.json (see `fedvla_workloads::sim_eval`).
 
 use std::path::PathBuf;
@@ -8,6 +8,7 @@ use anyhow::Context;
 use burn::tensor::Device;
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_policy::PolicyDir;
+use fedvla_sim::TaskKind;
 use fedvla_workloads::datagen::ensure_unrecorded;
 use fedvla_workloads::sim_eval::{
     Agent, DEFAULT_MAX_FRAMES, DEFAULT_SEED, DEFAULT_VIDEO_SIZE, RESULTS_FILE, SimEvalOptions, evaluate_in_sim,
@@ -24,6 +25,10 @@ pub struct Args {
     /// Evaluate the scripted expert instead of a policy.
     #[arg(long)]
     expert: bool,
+    /// The task the expert is set (`fedvla tasks` lists them); default cube-in-bowl, the one task policies are
+    /// rolled out on.
+    #[arg(long, conflicts_with = "policy", value_parser = TaskKind::from_name)]
+    task: Option<TaskKind>,
     /// Number of episodes; episode i runs on sim seed `--seed + i`.
     #[arg(long)]
     episodes: usize,
@@ -58,7 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let source = args.policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
     let agent = match &loaded {
         Some(policy) => Agent::Policy { policy, source: &source },
-        None => Agent::Expert,
+        None => Agent::Expert { task: args.task.unwrap_or(TaskKind::CubeInBowl) },
     };
 
     let bar = ProgressBar::new(args.episodes as u64);

@@ -3,6 +3,7 @@
 
 use std::path::PathBuf;
 
+use fedvla_sim::TaskKind;
 use fedvla_workloads::datagen::{GenDataOptions, GenProgress, generate_dataset};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -17,6 +18,10 @@ pub struct Args {
     /// Sim seed of the first episode; later episodes take the following seeds.
     #[arg(long, default_value_t = GenDataOptions::default().seed)]
     seed: u64,
+    /// Comma-separated tasks (`fedvla tasks` lists them) the episodes cycle through: episode k is of the k-th
+    /// modulo their number, recorded with its own instruction as its LeRobot task. Default: cube-in-bowl.
+    #[arg(long, value_delimiter = ',', value_parser = TaskKind::from_name)]
+    tasks: Vec<TaskKind>,
     /// Width and height of both cameras, in pixels (even).
     #[arg(long, default_value_t = GenDataOptions::default().image_size)]
     image_size: u32,
@@ -35,6 +40,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let opts = GenDataOptions {
         episodes: args.episodes,
         seed: args.seed,
+        tasks: if args.tasks.is_empty() { GenDataOptions::default().tasks } else { args.tasks },
         image_size: args.image_size,
         action_noise_degrees: args.action_noise,
     };
@@ -43,8 +49,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let summary = generate_dataset(&args.out, &opts, |event| match event {
         GenProgress::Frame { total_frames, .. } => bar.set_message(format!("{total_frames} frames")),
         GenProgress::EpisodeWritten { .. } => bar.inc(1),
-        GenProgress::Skipped { seed, frames } => {
-            bar.println(format!("warning: the expert failed on seed {seed} ({frames} frames); skipped"));
+        GenProgress::Skipped { task, seed, frames } => {
+            bar.println(format!("warning: the expert failed on {task} seed {seed} ({frames} frames); skipped"));
         }
     })?;
     bar.finish_and_clear();

@@ -10,6 +10,7 @@ mod parity;
 mod serve;
 mod simulate;
 mod support;
+mod tasks;
 mod train;
 
 use clap::Subcommand;
@@ -34,6 +35,8 @@ pub enum Command {
     Parity(parity::Args),
     /// Record scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset.
     GenData(gen_data::Args),
+    /// List the sim's tasks by name, one a line (what `eval --task` and `gen-data --tasks` take).
+    Tasks(tasks::Args),
 }
 
 pub fn run(command: Command) -> anyhow::Result<()> {
@@ -47,5 +50,6 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Parity(args) => parity::run(args),
         Command::Bench(args) => bench::run(args),
         Command::GenData(args) => gen_data::run(args),
+        Command::Tasks(args) => tasks::run(args),
     }
 }

@@ -1,8 +1,9 @@
 //! Recording the SO-100 sim's scripted expert as a LeRobot v3.0 dataset: `fedvla gen-data`, and the
 //! embedded default dataset a SmolVLA run records on first use.
 //!
-//! Successful episodes take consecutive seeds from `seed` on; a seed whose episode the expert fails
-//! is skipped (and reported), so the dataset holds only demonstrations that solve the task. One
+//! Successful episodes take consecutive seeds from `seed` on, episode k on task k modulo the tasks
+//! asked for, recorded with its own instruction as its LeRobot task; a seed whose episode the expert
+//! fails is skipped (and reported), so the dataset holds only demonstrations that solve their task. One
 //! thread simulates and renders the next episode while another encodes the current one (the
 //! writer encodes its two cameras in parallel): the output depends on the seed only.
 
@@ -11,8 +12,9 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use fedvla_aggregator::config::task_names;
 use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
-use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, TASK, drive_expert, render};
+use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, TaskKind, drive_expert_on, render};
 
 /// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
 pub const MAX_EPISODE_FRAMES: u32 = 400;
@@ -23,6 +25,8 @@ pub struct GenDataOptions {
     pub episodes: usize,
     /// Seed of the first scene; later attempts use the following seeds.
     pub seed: u64,
+    /// The tasks episodes cycle through: episode k is of `tasks[k % tasks.len()]`.
+    pub tasks: Vec<TaskKind>,
     /// Width and height of both cameras (even, for yuv420p video).
     pub image_size: u32,
     /// Standard deviation, degrees, of the perturbation the arm executes the expert's goals with
@@ -32,7 +36,7 @@ pub struct GenDataOptions {
 
 impl Default for GenDataOptions {
     fn default() -> Self {
-        Self { episodes: 50, seed: 0, image_size: 256, action_noise_degrees: 0.0 }
+        Self { episodes: 50, seed: 0, tasks: vec![TaskKind::CubeInBowl], image_size: 256, action_noise_degrees: 0.0 }
     }
 }
 
@@ -43,8 +47,8 @@ pub enum GenProgress {
     Frame { episode: usize, frame: usize, episode_length: usize, total_frames: u64 },
     /// Episode `episode` (recorded from `seed`) is written.
     EpisodeWritten { episode: usize, seed: u64, frames: usize },
-    /// The expert failed on `seed` within `frames` frames; no episode was recorded from it.
-    Skipped { seed: u64, frames: u32 },
+    /// The expert failed on `task` of `seed` within `frames` frames; no episode was recorded from it.
+    Skipped { task: TaskKind, seed: u64, frames: u32 },
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -65,8 +69,8 @@ impl GenSummary {
     }
 }
 
-/// Beside a recorded dataset's metadata: the sim seed of every episode, so evaluations can use layouts the
-/// dataset never saw (LeRobot ignores the file).
+/// Beside a recorded dataset's metadata: the sim seed and task of every episode, so evaluations can use layouts
+/// the dataset never saw and partitions can tell where each episode's cube started (LeRobot ignores the file).
 pub const SEEDS_FILE: &str = "meta/fedvla_seeds.json";
 
 /// What [`SEEDS_FILE`] holds.
@@ -79,13 +83,37 @@ pub struct RecordedSeeds {
     /// The perturbation the episodes were executed with, degrees (0: none).
     #[serde(default)]
     pub action_noise_degrees: f32,
+    /// The tasks the episodes cycle through ([`GenDataOptions::tasks`]); left out for the first task alone, so
+    /// a cube-in-bowl dataset's file is what it was before there were other tasks.
+    #[serde(default = "first_task_only", skip_serializing_if = "is_first_task_only", with = "task_names")]
+    pub tasks: Vec<TaskKind>,
+}
+
+impl RecordedSeeds {
+    /// The task episode `episode` was recorded on.
+    pub fn task_of(&self, episode: usize) -> TaskKind {
+        self.tasks[episode % self.tasks.len()]
+    }
+}
+
+fn first_task_only() -> Vec<TaskKind> {
+    vec![TaskKind::CubeInBowl]
+}
+
+fn is_first_task_only(tasks: &[TaskKind]) -> bool {
+    tasks == [TaskKind::CubeInBowl]
 }
 
 /// The seeds a dataset was recorded from, when `fedvla gen-data` (or the embedded default) recorded it.
 pub fn recorded_seeds(root: &Path) -> anyhow::Result<Option<RecordedSeeds>> {
     let path = root.join(SEEDS_FILE);
     match std::fs::read(&path) {
-        Ok(bytes) => Ok(Some(serde_json::from_slice(&bytes).with_context(|| format!("parsing {}", path.display()))?)),
+        Ok(bytes) => {
+            let recorded: RecordedSeeds =
+                serde_json::from_slice(&bytes).with_context(|| format!("parsing {}", path.display()))?;
+            anyhow::ensure!(!recorded.tasks.is_empty(), "{}: an empty list of tasks", path.display());
+            Ok(Some(recorded))
+        }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
     }
@@ -126,6 +154,7 @@ pub fn generate_dataset(
     mut progress: impl FnMut(GenProgress),
 ) -> anyhow::Result<GenSummary> {
     anyhow::ensure!(opts.episodes > 0, "no episodes to record");
+    anyhow::ensure!(!opts.tasks.is_empty(), "no tasks to record episodes of");
     anyhow::ensure!(
         opts.image_size > 0 && opts.image_size.is_multiple_of(2),
         "image size {} must be even and non-zero (yuv420p video)",
@@ -172,6 +201,7 @@ pub fn generate_dataset(
         seeds: seeds.clone(),
         skipped: skipped_seeds.clone(),
         action_noise_degrees: opts.action_noise_degrees,
+        tasks: opts.tasks.clone(),
     };
     let path = written.root.join(SEEDS_FILE);
     fedvla_fs::write_atomic(&path, &serde_json::to_vec_pretty(&record).expect("seeds serialize"))
@@ -186,8 +216,9 @@ pub fn generate_dataset(
     })
 }
 
-/// Runs the expert on seeds `opts.seed..` and sends every successful episode to `episodes` until
-/// `opts.episodes` were sent; returns the seeds it skipped. Stops early when the writer has hung up.
+/// Runs the expert on seeds `opts.seed..`, each on the task of the next episode to send, and sends every
+/// successful episode to `episodes` until `opts.episodes` were sent; returns the seeds it skipped. Stops early
+/// when the writer has hung up.
 fn record_episodes(
     opts: &GenDataOptions,
     max_failures: usize,
@@ -198,7 +229,8 @@ fn record_episodes(
     let mut sent = 0;
     let mut seed = opts.seed;
     while sent < opts.episodes {
-        match record_episode(seed, opts.image_size, ActionNoise::degrees(opts.action_noise_degrees)) {
+        let task = opts.tasks[sent % opts.tasks.len()];
+        match record_episode(task, seed, opts.image_size, ActionNoise::degrees(opts.action_noise_degrees)) {
             Ok(episode) => {
                 if episodes.send(RecordedEpisode { seed, episode }).is_err() {
                     break;
@@ -207,7 +239,7 @@ fn record_episodes(
             }
             Err(frames) => {
                 skipped.push(seed);
-                let _ = events.send(GenProgress::Skipped { seed, frames });
+                let _ = events.send(GenProgress::Skipped { task, seed, frames });
                 anyhow::ensure!(
                     skipped.len() <= max_failures,
                     "the expert failed on {} seeds ({skipped:?}) before {} episodes succeeded; giving up",
@@ -221,12 +253,12 @@ fn record_episodes(
     Ok(skipped)
 }
 
-/// The expert's episode on the scene of `seed`, executed with `noise`, with both cameras rendered at
-/// `size`x`size` before every action (LeRobot's observation-then-action order), or the frames it ran if
-/// it failed.
-fn record_episode(seed: u64, size: u32, noise: ActionNoise) -> Result<Episode, u32> {
+/// The expert's episode on the scene of `task` and `seed`, executed with `noise`, with both cameras rendered at
+/// `size`x`size` before every action (LeRobot's observation-then-action order) and the scene's instruction as
+/// its task, or the frames it ran if it failed.
+fn record_episode(task: TaskKind, seed: u64, size: u32, noise: ActionNoise) -> Result<Episode, u32> {
     let mut frames = Vec::new();
-    let scene = drive_expert(seed, ExpertEnd::PlanDone, MAX_EPISODE_FRAMES, noise, |scene, action| {
+    let scene = drive_expert_on(task, seed, ExpertEnd::PlanDone, MAX_EPISODE_FRAMES, noise, |scene, action| {
         let images = Camera::ALL
             .iter()
             .map(|&camera| RgbImage {
@@ -237,7 +269,7 @@ fn record_episode(seed: u64, size: u32, noise: ActionNoise) -> Result<Episode, u
             .collect();
         frames.push(Frame { state: scene.state().to_vec(), action: action.to_vec(), images });
     });
-    if scene.success() { Ok(Episode { task: TASK.to_string(), frames }) } else { Err(scene.frame()) }
+    if scene.success() { Ok(Episode { task: scene.instruction(), frames }) } else { Err(scene.frame()) }
 }
 
 /// Encodes the episodes received into `writer` and, once all `expected` arrived, finishes the dataset;

@@ -1,4 +1,4 @@
-//! Evaluation in the SO-100 simulation: roll a policy (or the scripted expert) out over a range of
+//! Evaluation in the SO-100 simulation: roll a policy (or the scripted expert, on any task) out over a range of
 //! seeds, film every episode (top and wrist cameras side by side, H.264 mp4) and write
 //! `results.json` ([`RolloutResults`]). Used by `fedvla eval`, by the server after rounds and by experiments;
 //! [`FilmedRollouts`] films a native volunteer's rollouts the same way.
@@ -19,7 +19,7 @@ use fedvla_federation::{
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
 use fedvla_learner::trainer::rollout_episode;
-use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, Scene, drive_expert, render};
+use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, Scene, TaskKind, drive_expert_on, render};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
@@ -38,15 +38,18 @@ pub enum Agent<'a> {
     /// A policy; `source` (its directory, or whatever identifies it) is recorded as `policy` in
     /// results.json.
     Policy { policy: &'a SimPolicy, source: &'a str },
-    /// The scripted expert, an upper reference for a policy's success rate.
-    Expert,
+    /// The scripted expert on `task`, an upper reference for a policy's success rate.
+    Expert { task: TaskKind },
 }
 
 impl Agent<'_> {
-    fn label(&self) -> &str {
+    /// What results.json records as `policy`. It has no field for the task, so the expert's label names any task
+    /// but the first (whose results said "expert" before there were others).
+    fn label(&self) -> String {
         match self {
-            Agent::Policy { source, .. } => source,
-            Agent::Expert => "expert",
+            Agent::Policy { source, .. } => source.to_string(),
+            Agent::Expert { task: TaskKind::CubeInBowl } => "expert".to_string(),
+            Agent::Expert { task } => format!("expert on {task}"),
         }
     }
 }
@@ -108,7 +111,7 @@ pub fn evaluate_in_sim(
         let result = match agent {
             Agent::Policy { policy, .. } => run_episode(policy, seed, opts.max_frames, &mut on_frame)
                 .with_context(|| format!("policy rollout of episode {i} (seed {seed})"))?,
-            Agent::Expert => run_expert(seed, opts.max_frames, &mut on_frame),
+            Agent::Expert { task } => run_expert(task, seed, opts.max_frames, &mut on_frame),
         };
         let filmed = film.map(Film::finish);
         if let Some(Err(message)) = &filmed {
@@ -124,7 +127,7 @@ pub fn evaluate_in_sim(
             video,
         });
     }
-    let mut results = RolloutResults::of(agent.label().to_string(), None, episodes);
+    let mut results = RolloutResults::of(agent.label(), None, episodes);
     results.video_errors = video_errors;
     let path = out.join(RESULTS_FILE);
     let json = serde_json::to_vec_pretty(&results).context("serialising the results")?;
@@ -132,11 +135,12 @@ pub fn evaluate_in_sim(
     Ok(results)
 }
 
-/// The scripted expert from `Scene::new(seed)`, ended like a policy episode: on success or when
+/// The scripted expert from `Scene::with_task(task, seed)`, ended like a policy episode: on success or when
 /// the budget runs out.
-fn run_expert(seed: u64, max_frames: usize, mut on_frame: impl FnMut(&Scene)) -> EpisodeResult {
-    let scene =
-        drive_expert(seed, ExpertEnd::Success, max_frames as u32, ActionNoise::NONE, |scene, _| on_frame(scene));
+fn run_expert(task: TaskKind, seed: u64, max_frames: usize, mut on_frame: impl FnMut(&Scene)) -> EpisodeResult {
+    let scene = drive_expert_on(task, seed, ExpertEnd::Success, max_frames as u32, ActionNoise::NONE, |scene, _| {
+        on_frame(scene);
+    });
     on_frame(&scene);
     EpisodeResult { seed, success: scene.success(), length: scene.frame() as usize }
 }

@@ -24,8 +24,7 @@ use fedvla_policy::config::Feature;
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes_as};
 use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
-use fedvla_sim::TASK;
-use fedvla_sim::task::Layout;
+use fedvla_sim::{Arrangement, TASK, TaskKind};
 
 use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
@@ -61,8 +60,9 @@ pub struct SmolVlaWorkload {
 }
 
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
-/// `dataset-episodes` episodes at the policy's image size (`data/so100-sim/<N>ep_<S>px[_noise<D>]`, recorded by the sim's
-/// expert from seed 0 on first use, whatever the run's seed, so every run of that size shares it).
+/// `dataset-episodes` episodes of `dataset-tasks` at the policy's image size
+/// (`data/so100-sim/<N>ep_<S>px[_noise<D>][_<task>+<task>...]`, recorded by the sim's expert from seed 0 on first
+/// use, whatever the run's seed, so every run of that size shares it).
 fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
     let root = dataset_root(config)?;
     if config.dataset != EMBEDDED_DATASET {
@@ -85,10 +85,17 @@ fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
     bar.set_style(indicatif::ProgressStyle::with_template(
         "recording the embedded SO-100 dataset [{bar:30}] {pos}/{len} expert episodes {msg} ({elapsed})",
     )?);
-    bar.println(format!("recording {} expert episodes into {}", config.dataset_episodes, root.display()));
+    let tasks: Vec<&str> = config.dataset_tasks.iter().map(|task| task.name()).collect();
+    bar.println(format!(
+        "recording {} expert episodes of {} into {}",
+        config.dataset_episodes,
+        tasks.join(", "),
+        root.display()
+    ));
     let options = GenDataOptions {
         episodes: config.dataset_episodes,
         seed: 0,
+        tasks: config.dataset_tasks.clone(),
         image_size: model_config(config)?.resize_imgs_with_padding.1 as u32,
         action_noise_degrees: config.dataset_action_noise as f32,
     };
@@ -102,7 +109,7 @@ fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
 }
 
 /// The dataset a run trains on, recorded or not yet: `dataset`, or the embedded default's recording for
-/// the run's episodes, image size and perturbation.
+/// the run's episodes, image size, perturbation and tasks.
 pub fn dataset_root(config: &RunConfig) -> anyhow::Result<PathBuf> {
     if config.dataset != EMBEDDED_DATASET {
         return Ok(PathBuf::from(&config.dataset));
@@ -110,13 +117,18 @@ pub fn dataset_root(config: &RunConfig) -> anyhow::Result<PathBuf> {
     Ok(embedded_dataset(config, model_config(config)?.resize_imgs_with_padding.1))
 }
 
-/// Where the embedded default dataset of this many episodes at this image size (and perturbation) lives.
+/// Where the embedded default dataset of this many episodes at this image size (and perturbation, and tasks) lives.
+/// The cube-in-bowl task alone adds nothing to the name: its recordings predate the other tasks.
 fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
     let noise = match config.dataset_action_noise {
         0.0 => String::new(),
         degrees => format!("_noise{degrees}"),
     };
-    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}", config.dataset_episodes))
+    let tasks = match config.dataset_tasks.as_slice() {
+        [TaskKind::CubeInBowl] => String::new(),
+        tasks => format!("_{}", tasks.iter().map(|task| task.name()).collect::<Vec<_>>().join("+")),
+    };
+    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}{tasks}", config.dataset_episodes))
 }
 
 fn partition_strategy(p: Partitioning) -> PartitionStrategy {
@@ -128,7 +140,8 @@ fn partition_strategy(p: Partitioning) -> PartitionStrategy {
 }
 
 /// The dataset's episodes as the partitioner gets them: in index order, or for `by-layout` in the order of where
-/// the sim put each episode's cube (its azimuth around the arm's base, from the recorded seed).
+/// the sim put the cube each episode's task moves (its azimuth around the arm's base, from the recorded seed and
+/// task).
 pub fn episodes_to_partition(
     config: &RunConfig,
     root: &Path,
@@ -147,7 +160,7 @@ pub fn episodes_to_partition(
             let seed = recorded.seeds.get(e.episode_index).with_context(|| {
                 format!("{} lists no seed for episode {} of {}", SEEDS_FILE, e.episode_index, root.display())
             })?;
-            let cube = Layout::from_seed(*seed).cube_position;
+            let cube = Arrangement::from_seed(recorded.task_of(e.episode_index), *seed).subject().position;
             Ok(cube.x.atan2(-cube.y))
         };
         let mut keyed = episodes.iter().map(|e| Ok((azimuth(e)?, *e))).collect::<anyhow::Result<Vec<_>>>()?;

@@ -312,7 +312,10 @@ async fn every_strategy_federates_the_tiny_smolvla() {
         ("qfedavg", ""),
         ("scaffold", ""),
         ("fedavg", "dp-noise-multiplier=0.5 dp-clip-norm=0.1"),
-        ("fedadam", "server-lr=0.01 dp-noise-multiplier=0.5 dp-clip-norm=0.1 dp-clip-quantile=0.5"),
+        (
+            "fedadam",
+            "server-lr=0.01 dp-noise-multiplier=0.5 dp-clip-norm=0.1 dp-clip-quantile=0.5 dp-clip-count-stddev=1",
+        ),
     ]
     .into_iter()
     .enumerate()

@@ -25,8 +25,7 @@ use hyper_util::rt::TokioIo;
 use tokio::net::TcpStream;
 use tokio_rustls::TlsConnector;
 use tokio_rustls::client::TlsStream;
-use tokio_rustls::rustls::pki_types::pem::PemObject;
-use tokio_rustls::rustls::pki_types::{CertificateDer, ServerName};
+use tokio_rustls::rustls::pki_types::ServerName;
 use tokio_rustls::rustls::{self, ClientConfig, RootCertStore};
 use tokio_tungstenite::WebSocketStream;
 use tokio_tungstenite::tungstenite::Message;
@@ -56,14 +55,7 @@ impl Dialer {
     pub fn tls(authority: &str, host: &str, extra_roots: Option<&Path>) -> Result<Self, BoxError> {
         let mut roots = RootCertStore::from_iter(webpki_roots::TLS_SERVER_ROOTS.iter().cloned());
         if let Some(path) = extra_roots {
-            let pem = std::fs::read(path).map_err(|e| format!("reading {}: {e}", path.display()))?;
-            let certificates = CertificateDer::pem_slice_iter(&pem)
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| format!("{}: no certificate in PEM: {e}", path.display()))?;
-            if certificates.is_empty() {
-                return Err(format!("{}: no CERTIFICATE section", path.display()).into());
-            }
-            for certificate in certificates {
+            for certificate in fedvla_app::tls::certificates(path)? {
                 roots.add(certificate).map_err(|e| format!("{}: {e}", path.display()))?;
             }
         }

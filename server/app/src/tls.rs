@@ -23,19 +23,13 @@ pub enum TlsError {
 /// The acceptor of a server presenting the chain in `cert` (PEM, leaf first) with the private key in `key` (PEM:
 /// PKCS#8, PKCS#1 or SEC1).
 pub fn acceptor(cert: &Path, key: &Path) -> Result<TlsAcceptor, TlsError> {
-    let read =
-        |path: &Path| std::fs::read(path).map_err(|source| TlsError::Read { path: path.display().to_string(), source });
-    let pem_error =
-        |path: &Path, what, detail: String| TlsError::Pem { path: path.display().to_string(), what, detail };
-    let (cert_pem, key_pem) = (read(cert)?, read(key)?);
-    let chain = CertificateDer::pem_slice_iter(&cert_pem)
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| pem_error(cert, "certificate", e.to_string()))?;
-    if chain.is_empty() {
-        return Err(pem_error(cert, "certificate", "no CERTIFICATE section".into()));
-    }
-    let private_key =
-        PrivateKeyDer::from_pem_slice(&key_pem).map_err(|e| pem_error(key, "private key", e.to_string()))?;
+    let chain = certificates(cert)?;
+    let key_pem = read(key)?;
+    let private_key = PrivateKeyDer::from_pem_slice(&key_pem).map_err(|e| TlsError::Pem {
+        path: key.display().to_string(),
+        what: "private key",
+        detail: e.to_string(),
+    })?;
     let config_error =
         |source| TlsError::Config { cert: cert.display().to_string(), key: key.display().to_string(), source };
     let config = ServerConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
@@ -45,4 +39,21 @@ pub fn acceptor(cert: &Path, key: &Path) -> Result<TlsAcceptor, TlsError> {
         .with_single_cert(chain, private_key)
         .map_err(config_error)?;
     Ok(TlsAcceptor::from(Arc::new(config)))
+}
+
+/// Every certificate of the PEM file `path`, in order (a server's chain, or the roots a client trusts); at least
+/// one.
+pub fn certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>, TlsError> {
+    let pem_error = |detail: String| TlsError::Pem { path: path.display().to_string(), what: "certificate", detail };
+    let chain = CertificateDer::pem_slice_iter(&read(path)?)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| pem_error(e.to_string()))?;
+    if chain.is_empty() {
+        return Err(pem_error("no CERTIFICATE section".into()));
+    }
+    Ok(chain)
+}
+
+fn read(path: &Path) -> Result<Vec<u8>, TlsError> {
+    std::fs::read(path).map_err(|source| TlsError::Read { path: path.display().to_string(), source })
 }

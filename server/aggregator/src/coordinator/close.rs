@@ -76,7 +76,7 @@ impl Running {
             if dropped == MAX_DROPPED_PER_ROUND || updates.len() <= self.c.config.min_fit {
                 return Ok(Aggregated::Skipped { reason });
             }
-            let culprit = culprit.unwrap_or_else(|| farthest(&self.c.global, &updates));
+            let culprit = culprit.unwrap_or_else(|| farthest(&updates));
             let client_id = updates.remove(culprit).client_id;
             dropped += 1;
             tracing::warn!(round, client_id, %reason, "dropping the update farthest from the global model, re-aggregating");
@@ -173,9 +173,8 @@ impl Running {
     }
 }
 
-/// Index of the update farthest (Euclidean) from `global`: after a failed aggregate, the likeliest culprit (one that
-/// does not fit the model first of all).
-fn farthest(global: &NamedTensors, updates: &[RoundUpdate]) -> usize {
-    let distances: Vec<f64> = updates.iter().map(|u| u.tensors.distance(global).unwrap_or(f64::INFINITY)).collect();
-    (0..updates.len()).max_by(|&a, &b| distances[a].total_cmp(&distances[b])).unwrap_or(0)
+/// Index of the update farthest (Euclidean) from the round's global model, by the norm measured as it arrived:
+/// after a failed aggregate, the likeliest culprit.
+fn farthest(updates: &[RoundUpdate]) -> usize {
+    (0..updates.len()).max_by(|&a, &b| updates[a].norm.total_cmp(&updates[b].norm)).unwrap_or(0)
 }

@@ -233,6 +233,11 @@ pub struct RunConfig {
     pub header_read_timeout_ms: u64,
     pub idle_timeout_ms: u64,
     pub max_volunteer_names: usize,
+    pub joins_per_address_per_minute: u32,
+    pub max_messages_per_second: u32,
+    pub max_rollout_videos: u32,
+    pub max_video_bytes: u64,
+    pub max_upload_memory_bytes: u64,
     pub auto_start: bool,
     pub www_dir: String,
     pub output_dir: String,
@@ -549,9 +554,40 @@ impl RunConfig {
         if self.max_frame_bytes <= fedvla_federation::codec::HEADER_LEN {
             return fail(format!("max-frame-bytes must exceed {}", fedvla_federation::codec::HEADER_LEN));
         }
+        self.validate_bounds()
+    }
+
+    /// The bounds on strangers' input (`joins-per-address-per-minute` and after): each at least 1, and none
+    /// that makes what the run asks for impossible.
+    fn validate_bounds(&self) -> Result<(), ConfigError> {
+        let fail = |m: String| Err(ConfigError::Invalid(m));
+        if self.joins_per_address_per_minute == 0
+            || self.max_messages_per_second == 0
+            || self.max_rollout_videos == 0
+            || self.max_video_bytes == 0
+        {
+            return fail(
+                "joins-per-address-per-minute, max-messages-per-second, max-rollout-videos and max-video-bytes \
+                 must be at least 1"
+                    .into(),
+            );
+        }
+        if self.client_rollout_episodes > self.max_rollout_videos {
+            return fail(format!(
+                "client-rollout-episodes ({}) asks each client for more videos a round than max-rollout-videos ({})",
+                self.client_rollout_episodes, self.max_rollout_videos
+            ));
+        }
+        if self.max_upload_memory_bytes < self.max_video_bytes {
+            return fail(format!(
+                "max-upload-memory-bytes ({}) must hold at least one video of max-video-bytes ({})",
+                self.max_upload_memory_bytes, self.max_video_bytes
+            ));
+        }
         Ok(())
     }
 }
+
 
 /// Parses `raw` as a TOML value of the same type as `current`.
 fn parse_value(raw: &str, current: &toml::Value) -> Result<toml::Value, String> {

@@ -1,8 +1,10 @@
 //! One client's WebSocket: join handshake, control messages, update reassembly and validation. Generic over
 //! Sink/Stream so it runs over channels in unit tests. Bad input is answered with an `Error` message to this
-//! client and counted by the coordinator; only fatal errors close the connection.
+//! client and counted by the coordinator; only fatal errors close the connection. The bounds of [`crate::bounds`]
+//! apply here: joins per address, messages per second, and memory for the update on its way in.
 
 use std::fmt::Display;
+use std::net::IpAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -17,22 +19,24 @@ use tokio::sync::mpsc;
 use fedvla_aggregator::coordinator::{Event, UpdateReceived};
 use fedvla_aggregator::sessions::same_secret;
 
+use crate::bounds::{MessageRate, Reservation};
 use crate::state::SocketState;
 use crate::volunteer;
 
 /// A connection that has not joined by then is closed.
 const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
 
-/// Serves one connection until the client leaves, a fatal error, or shutdown.
-pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: SocketState)
+/// Serves one connection from `peer` until the client leaves, a fatal error, or shutdown.
+pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: SocketState, peer: IpAddr)
 where
     S: Sink<Message> + Unpin,
     S::Error: Display,
     R: Stream<Item = Result<Message, E>> + Unpin,
     E: Display,
 {
-    let mut conn = Connection { sink, state, client_id: None, upload: Upload::Idle };
-    let Some(mut outbox) = conn.join(&mut stream).await else {
+    let rate = MessageRate::new(state.messages_per_second);
+    let mut conn = Connection { sink, state, client_id: None, upload: Upload::Idle, rate };
+    let Some(mut outbox) = conn.join(&mut stream, peer).await else {
         conn.close().await;
         return;
     };
@@ -94,6 +98,8 @@ enum Upload {
         header: AnnouncedUpdate,
         reassembler: Option<Reassembler>,
         bytes: u64,
+        /// The announced size, held in the upload budget until the update is decoded or refused.
+        reservation: Reservation,
     },
     /// A refused update: its remaining frames are dropped silently until the next control message.
     Discarding,
@@ -112,6 +118,7 @@ struct Connection<S> {
     state: SocketState,
     client_id: Option<u64>,
     upload: Upload,
+    rate: MessageRate,
 }
 
 impl<S> Connection<S>
@@ -119,8 +126,9 @@ where
     S: Sink<Message> + Unpin,
     S::Error: Display,
 {
-    /// Waits for `Join`, checks version and token, registers with the coordinator and welcomes the client.
-    async fn join<R, E>(&mut self, stream: &mut R) -> Option<mpsc::UnboundedReceiver<ServerMessage>>
+    /// Waits for `Join`, checks `peer`'s join rate, version and token, registers with the coordinator and welcomes
+    /// the client.
+    async fn join<R, E>(&mut self, stream: &mut R, peer: IpAddr) -> Option<mpsc::UnboundedReceiver<ServerMessage>>
     where
         R: Stream<Item = Result<Message, E>> + Unpin,
     {
@@ -139,6 +147,11 @@ where
                 }
             },
         };
+        // Before anything else of the message is looked at, so that guessing tokens or names costs joins too.
+        if !self.state.joins.allow(peer) {
+            self.refuse(ErrorCode::JoinRateLimited, format!("{peer} has joined too often in the last minute")).await;
+            return None;
+        }
         let (name, capabilities, shard) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
             Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities, shard }) => {
                 if protocol_version != PROTOCOL_VERSION {
@@ -199,6 +212,9 @@ where
 
     async fn on_text(&mut self, text: &str) -> Flow {
         let client_id = self.client_id.expect("joined");
+        if !self.rate.allow() {
+            return self.refuse_rate().await;
+        }
         if matches!(self.upload, Upload::Receiving { .. }) {
             self.upload = Upload::Idle;
             return self.refuse(ErrorCode::MalformedFrame, "control message in the middle of an update".into()).await;
@@ -220,11 +236,22 @@ where
             }
             ClientMessage::UpdateHeader { round, examples, train_loss, payload_bytes } => {
                 let limit = self.state.limits.max_payload_bytes;
+                // A refused update's frames are still on their way: dropped silently, not refused one by one.
                 if payload_bytes > limit {
+                    self.upload = Upload::Discarding;
                     return self.refuse_codec(CodecError::Oversized { len: payload_bytes, limit }).await;
                 }
+                let Some(reservation) = self.state.uploads.reserve(payload_bytes) else {
+                    self.upload = Upload::Discarding;
+                    let message = format!(
+                        "an update of {payload_bytes} bytes does not fit in the {} bytes held for uploads in flight \
+                         now; send it again later",
+                        self.state.uploads.limit()
+                    );
+                    return self.refuse(ErrorCode::UploadBudget, message).await;
+                };
                 let header = AnnouncedUpdate { round, examples, train_loss, payload_bytes };
-                self.upload = Upload::Receiving { header, reassembler: None, bytes: 0 };
+                self.upload = Upload::Receiving { header, reassembler: None, bytes: 0, reservation };
                 // For the console's client table: training is over, the update is on its way.
                 return self.emit(Event::Uploading { client_id }).await;
             }
@@ -240,9 +267,13 @@ where
     }
 
     async fn on_binary(&mut self, frame: &[u8]) -> Flow {
-        let Upload::Receiving { header, reassembler, bytes } = &mut self.upload else {
+        let Upload::Receiving { header, reassembler, bytes, .. } = &mut self.upload else {
             if matches!(self.upload, Upload::Discarding) {
                 return Flow::Continue;
+            }
+            // An update's own frames are bounded by its announced size; stray ones count as messages.
+            if !self.rate.allow() {
+                return self.refuse_rate().await;
             }
             return self.refuse(ErrorCode::UnexpectedMessage, "binary frame without an update header".into()).await;
         };
@@ -269,7 +300,8 @@ where
             return Flow::Continue;
         }
         let bytes = *bytes;
-        let Upload::Receiving { reassembler: Some(reassembler), .. } =
+        // The reservation ends once the payload is decoded (or refused), when it goes out of scope.
+        let Upload::Receiving { reassembler: Some(reassembler), reservation: _reservation, .. } =
             std::mem::replace(&mut self.upload, Upload::Idle)
         else {
             unreachable!("checked above")
@@ -295,6 +327,11 @@ where
             }
             Err(e) => self.refuse_codec(e).await,
         }
+    }
+
+    async fn refuse_rate(&mut self) -> Flow {
+        let message = format!("more than {} messages a second", self.state.messages_per_second);
+        self.refuse(ErrorCode::MessageRateLimited, message).await
     }
 
     async fn refuse_codec(&mut self, e: CodecError) -> Flow {
@@ -356,6 +393,7 @@ mod tests {
     use tokio_util::sync::CancellationToken;
 
     use super::*;
+    use crate::bounds::{JoinLimiter, UploadBudget};
 
     const KEEPALIVE: Duration = Duration::from_secs(20);
 
@@ -397,6 +435,9 @@ mod tests {
                 auth_token: Some(Arc::from("secret")),
                 volunteers: Arc::new(Volunteers::new(offer, run_dir, 16).unwrap()),
                 sessions: Sessions::default(),
+                joins: JoinLimiter::new(60),
+                messages_per_second: 50,
+                uploads: UploadBudget::new(1 << 20),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
                 tx.send(msg).ok();
@@ -405,7 +446,7 @@ mod tests {
             let stream = Box::pin(stream::unfold(server_rx, |mut rx| async move {
                 rx.recv().await.map(|m| (Ok::<_, Infallible>(m), rx))
             }));
-            let task = tokio::spawn(handle_socket(sink, stream, state));
+            let task = tokio::spawn(handle_socket(sink, stream, state, IpAddr::from([127, 0, 0, 1])));
             Self { to_server, from_server, events, cancel, task, _run_base: run_base }
         }
 

@@ -21,6 +21,10 @@ pub enum ServerError {
     BadRequest(String),
     #[error("could not store: {0}")]
     Storage(String),
+    #[error("too large: {0}")]
+    TooLarge(String),
+    #[error("busy: {0}")]
+    Busy(String),
 }
 
 impl IntoResponse for ServerError {
@@ -31,6 +35,8 @@ impl IntoResponse for ServerError {
             Self::Forbidden(_) => StatusCode::FORBIDDEN,
             Self::BadRequest(_) => StatusCode::BAD_REQUEST,
             Self::ShardIo(_) | Self::Storage(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            Self::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::Busy(_) => StatusCode::SERVICE_UNAVAILABLE,
         };
         (status, self.to_string()).into_response()
     }

@@ -6,12 +6,16 @@
 //! [`HttpLimits::keepalive`]).
 
 use std::io;
+use std::net::SocketAddr;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll, ready};
 use std::time::Duration;
 
 use axum::Router;
+use axum::extract::ConnectInfo;
+use axum::http::Request;
+use hyper::body::Incoming;
 use hyper::server::conn::http1;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
@@ -22,6 +26,7 @@ use tokio::time::{Instant, Sleep};
 use tokio_rustls::TlsAcceptor;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
+use tower::ServiceExt;
 
 use crate::console::ConsoleHub;
 
@@ -84,11 +89,11 @@ pub async fn serve(
         let (builder, app, tls, shutdown) = (builder.clone(), app.clone(), tls.clone(), shutdown.clone());
         connections.spawn(async move {
             let result = match tls {
-                None => serve_connection(&builder, stream, app, &shutdown).await,
+                None => serve_connection(&builder, stream, app, peer, &shutdown).await,
                 Some(acceptor) => {
                     let handshake = tokio::time::timeout(limits.header_read_timeout, acceptor.accept(stream));
                     match handshake.await {
-                        Ok(Ok(stream)) => serve_connection(&builder, stream, app, &shutdown).await,
+                        Ok(Ok(stream)) => serve_connection(&builder, stream, app, peer, &shutdown).await,
                         Ok(Err(e)) => {
                             tracing::debug!(%peer, error = %e, "TLS handshake failed");
                             return;
@@ -112,16 +117,22 @@ pub async fn serve(
     Ok(())
 }
 
-/// Serves `app` on one connection (with upgrades, for the WebSocket) until it ends, or gracefully after `shutdown`.
+/// Serves `app` on one connection from `peer` (with upgrades, for the WebSocket) until it ends, or gracefully
+/// after `shutdown`. Every request carries the peer's address as axum's [`ConnectInfo`] (joins are counted by it).
 async fn serve_connection<S>(
     builder: &http1::Builder,
     stream: S,
     app: Router,
+    peer: SocketAddr,
     shutdown: &CancellationToken,
 ) -> Result<(), hyper::Error>
 where
     S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
 {
+    let app = app.map_request(move |mut request: Request<Incoming>| {
+        request.extensions_mut().insert(ConnectInfo(peer));
+        request
+    });
     let conn = builder.serve_connection(TokioIo::new(stream), TowerToHyperService::new(app)).with_upgrades();
     let mut conn = std::pin::pin!(conn);
     tokio::select! {

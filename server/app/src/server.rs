@@ -20,6 +20,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::app;
+use crate::bounds::{JoinLimiter, UploadBudget};
 use crate::console::ConsoleHub;
 use crate::http::{self, HttpLimits};
 use crate::state::{AppState, ConsoleState, SocketState, VolunteerState, WwwState};
@@ -38,6 +39,10 @@ pub enum StartError {
     Io(#[from] std::io::Error),
     #[error("TLS: {0}")]
     Tls(#[from] TlsError),
+    #[error(
+        "max-upload-memory-bytes ({budget}) cannot hold one update of the trainable tensors ({update} bytes): raise it"
+    )]
+    UploadBudget { budget: u64, update: u64 },
 }
 
 /// A running server.
@@ -78,6 +83,11 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     let cancel = CancellationToken::new();
     let encoding = config.encoding();
     let limits = UpdateLimits::for_spec(&spec, encoding, config.max_frame_bytes, UPDATE_HEADROOM_BYTES);
+    let update = limits.max_payload_bytes - UPDATE_HEADROOM_BYTES;
+    if config.max_upload_memory_bytes < update {
+        return Err(StartError::UploadBudget { budget: config.max_upload_memory_bytes, update });
+    }
+    let uploads = UploadBudget::new(config.max_upload_memory_bytes);
     let http_limits = HttpLimits {
         max_connections: config.max_connections,
         header_read_timeout: Duration::from_millis(config.header_read_timeout_ms),
@@ -97,6 +107,9 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             auth_token: auth_token.clone(),
             volunteers: Arc::clone(&volunteers),
             sessions: sessions.clone(),
+            joins: JoinLimiter::new(config.joins_per_address_per_minute),
+            messages_per_second: config.max_messages_per_second,
+            uploads: uploads.clone(),
         },
         volunteers: VolunteerState {
             auth_token: auth_token.clone(),
@@ -105,6 +118,8 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             model: model_rx,
             run_dir: run_dir.clone(),
             console: console.clone(),
+            uploads,
+            max_video_bytes: config.max_video_bytes,
         },
         console: ConsoleState { hub: console.clone(), run_dir: run_dir.clone(), cancel: cancel.clone() },
         www: WwwState { dir: Arc::new(PathBuf::from(&config.www_dir)) },

@@ -15,6 +15,7 @@ use fedvla_federation::{TensorSpec, UpdateEncoding, UpdateLimits};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
+use crate::bounds::{JoinLimiter, UploadBudget};
 use crate::console::ConsoleHub;
 
 #[derive(Clone)]
@@ -42,6 +43,12 @@ pub struct SocketState {
     pub volunteers: Arc<Volunteers>,
     /// Upload sessions, opened by each join.
     pub sessions: Sessions,
+    /// Joins per address per minute.
+    pub joins: JoinLimiter,
+    /// Messages each connection may send a second (`max-messages-per-second`).
+    pub messages_per_second: u32,
+    /// Memory for updates on their way in, shared with the videos'.
+    pub uploads: UploadBudget,
 }
 
 /// The volunteers' HTTP routes': setup, shards, frozen weights, the global model, rollout videos.
@@ -55,8 +62,12 @@ pub struct VolunteerState {
     pub model: watch::Receiver<Arc<PublishedModel>>,
     /// Where uploads are filed.
     pub run_dir: RunDir,
-    /// Told of every video stored.
+    /// Told of every video stored, and counts the uploads refused.
     pub console: ConsoleHub,
+    /// Memory for videos on their way in, shared with the updates'.
+    pub uploads: UploadBudget,
+    /// Largest rollout video accepted (`max-video-bytes`).
+    pub max_video_bytes: u64,
 }
 
 /// The operator console's API's.

@@ -1,7 +1,8 @@
 //! What volunteers download and upload over HTTP, beside the WebSocket: the setup (`GET /api/volunteer`: which
 //! shard to train on, the policy configuration, where the frozen weights are), the shard and its manifest, the
 //! frozen weights (named by content hash so browsers cache them forever), the global model, and rollout videos
-//! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked), and a
+//! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked, within
+//! `max-rollout-videos`, `max-video-bytes` and the upload budget; each refusal counted on the console), and a
 //! SCAFFOLD client's correction for its round (`GET /scaffold/{round}`, by the same token).
 //! A run with an auth token serves its downloads only to requests that present it ([`RunToken`]).
 
@@ -9,25 +10,23 @@ use std::sync::Arc;
 
 use axum::Json;
 use axum::Router;
-use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, FromRef, FromRequestParts, Path, Query, State};
-use axum::http::header::{CACHE_CONTROL, CONTENT_TYPE};
+use axum::body::Body;
+use axum::extract::{FromRef, FromRequestParts, Path, Query, State};
+use axum::http::header::{CACHE_CONTROL, CONTENT_LENGTH, CONTENT_TYPE};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use fedvla_aggregator::registry::Volunteers;
-use fedvla_aggregator::sessions::same_secret;
-use fedvla_federation::{PROTOCOL_VERSION, VolunteerSetup, routes};
+use fedvla_aggregator::sessions::{UploadRefused, same_secret};
+use fedvla_federation::{ErrorCode, PROTOCOL_VERSION, VolunteerSetup, routes};
+use futures_util::StreamExt;
 use serde::Deserialize;
 
 use crate::auth::bearer;
 use crate::console::ConsoleEvent;
 use crate::error::ServerError;
 use crate::state::{AppState, VolunteerState};
-
-/// Largest rollout video accepted.
-const MAX_VIDEO_BYTES: usize = 64 << 20;
 
 pub fn routes() -> Router<AppState> {
     Router::new()
@@ -37,7 +36,7 @@ pub fn routes() -> Router<AppState> {
         .route(routes::SHARD_MANIFEST, get(get_shard_manifest))
         .route(routes::MODEL, get(get_model))
         .route(routes::CORRECTION, get(get_correction))
-        .route(routes::ROLLOUT_VIDEO, post(post_video).layer(DefaultBodyLimit::max(MAX_VIDEO_BYTES)))
+        .route(routes::ROLLOUT_VIDEO, post(post_video))
 }
 
 /// Proof that a download request may see the run's data: it presents the run's auth token (compared in constant
@@ -181,13 +180,18 @@ async fn get_correction(
     Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
 }
 
-/// Stores a rollout video as `evaluate/round_N/client_K/<file>`.
+/// Stores a rollout video as `evaluate/round_N/client_K/<file>`. Its length (`Content-Length`, else
+/// `max-video-bytes`) is reserved in the upload budget before its body is read.
 async fn post_video(
     Path((round, file)): Path<(u64, String)>,
     State(state): State<VolunteerState>,
     headers: HeaderMap,
-    body: Bytes,
+    body: Body,
 ) -> Result<Response, ServerError> {
+    let refused = |code: ErrorCode, error: ServerError| {
+        state.console.count_refusal(code);
+        error
+    };
     let client_id = session_client(&state, &headers)?;
     let safe_name = !file.is_empty()
         && file.len() <= 64
@@ -197,17 +201,42 @@ async fn post_video(
     if !safe_name {
         return Err(ServerError::BadRequest(format!("video name {file:?}: use [A-Za-z0-9_.-], ending .webm or .mp4")));
     }
-    if body.is_empty() {
+    let max = state.max_video_bytes;
+    let too_large = |len: String| ServerError::TooLarge(format!("video {file}: {len} bytes, max-video-bytes is {max}"));
+    let announced = headers.get(CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    if let Some(len) = announced.filter(|len| *len > max) {
+        return Err(refused(ErrorCode::VideoTooLarge, too_large(len.to_string())));
+    }
+    let Some(_reservation) = state.uploads.reserve(announced.unwrap_or(max)) else {
+        let message = format!("the {} bytes held for uploads in flight are taken; try again", state.uploads.limit());
+        return Err(refused(ErrorCode::UploadBudget, ServerError::Busy(message)));
+    };
+    let mut body = body.into_data_stream();
+    let mut video = Vec::with_capacity(announced.unwrap_or(0) as usize);
+    while let Some(chunk) = body.next().await {
+        let chunk = chunk.map_err(|e| ServerError::BadRequest(format!("video {file}: {e}")))?;
+        if (video.len() + chunk.len()) as u64 > max {
+            return Err(refused(ErrorCode::VideoTooLarge, too_large(format!("more than {max}"))));
+        }
+        video.extend_from_slice(&chunk);
+    }
+    if video.is_empty() {
         return Err(ServerError::BadRequest(format!("video {file} is empty")));
     }
-    state.sessions.take_upload(client_id, round).map_err(|e| ServerError::Forbidden(e.to_string()))?;
+    state.sessions.take_upload(client_id, round).map_err(|e| {
+        let code = match e {
+            UploadRefused::NotAsked { .. } => ErrorCode::UnrequestedVideo,
+            UploadRefused::AllTaken { .. } => ErrorCode::TooManyVideos,
+        };
+        refused(code, ServerError::Forbidden(e.to_string()))
+    })?;
     let dir = state.run_dir.client_eval_dir(round, client_id);
     let path = dir.join(&file);
-    let len = body.len();
+    let len = video.len();
     let stored = {
         let (dir, path) = (dir.clone(), path.clone());
         tokio::task::spawn_blocking(move || {
-            std::fs::create_dir_all(&dir).and_then(|()| fedvla_fs::write_atomic(&path, &body))
+            std::fs::create_dir_all(&dir).and_then(|()| fedvla_fs::write_atomic(&path, &video))
         })
     };
     match stored.await {

@@ -38,7 +38,13 @@ pub fn config(overrides: &str) -> RunConfig {
 
 /// A server of the linreg workload (one shard per `num-clients`, weighing `linreg::train_examples`).
 pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
-    let parts = ServerParts {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    server::start(parts(config, run_dir), listener).unwrap()
+}
+
+/// What [`start`] starts a server of.
+pub fn parts(config: RunConfig, run_dir: RunDir) -> ServerParts {
+    ServerParts {
         initial: linreg::initial_model(config.seed),
         volunteer: LinRegWorkload::from_config(&config).volunteer_offer().unwrap(),
         strategy: fedvla_workloads::workload::strategy(&config),
@@ -46,9 +52,7 @@ pub async fn start(config: RunConfig, run_dir: RunDir) -> ServerHandle {
         run_dir,
         evaluator: Box::new(LinRegEvaluator::default()),
         exporters: Vec::new(),
-    };
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    server::start(parts, listener).unwrap()
+    }
 }
 
 /// Waits (at most 20 s) until the status satisfies `pred`.
@@ -195,6 +199,15 @@ pub struct RawClient {
 impl RawClient {
     pub async fn connect(handle: &ServerHandle) -> Self {
         let (ws, _) = tokio_tungstenite::connect_async(format!("ws://{}/ws", handle.addr())).await.unwrap();
+        Self { ws }
+    }
+
+    /// Connects from `source`, a loopback address of its own (127.0.0.2, ...): another volunteer's machine.
+    pub async fn connect_from(handle: &ServerHandle, source: std::net::Ipv4Addr) -> Self {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind((source, 0).into()).unwrap();
+        let stream = MaybeTlsStream::Plain(socket.connect(handle.addr()).await.unwrap());
+        let (ws, _) = tokio_tungstenite::client_async(format!("ws://{}/ws", handle.addr()), stream).await.unwrap();
         Self { ws }
     }
 

@@ -331,6 +331,19 @@ pub enum ErrorCode {
     ShapeMismatch,
     NonFinite,
     UnexpectedMessage,
+    /// A join from an address that has already joined `joins-per-address-per-minute` times this minute.
+    JoinRateLimited,
+    /// More messages a second on one connection than `max-messages-per-second`.
+    MessageRateLimited,
+    /// An upload that does not fit, while others are in flight, in the memory the server holds for them
+    /// (`max-upload-memory-bytes`): an update is refused for its round, a video may be sent again.
+    UploadBudget,
+    /// A rollout video larger than `max-video-bytes` (HTTP 413).
+    VideoTooLarge,
+    /// A rollout video beyond those the round asked the client for (HTTP 403).
+    TooManyVideos,
+    /// A rollout video for a round that asked the client for none (HTTP 403).
+    UnrequestedVideo,
     /// An update for another round than the one running (late, or sent when none runs).
     StaleRound,
     /// A second update from a client in the same round.
@@ -355,7 +368,13 @@ impl ErrorCode {
     pub fn is_fatal(self) -> bool {
         matches!(
             self,
-            Self::ProtocolVersion | Self::Unauthorized | Self::ShuttingDown | Self::InvalidName | Self::UnknownShard
+            Self::ProtocolVersion
+                | Self::Unauthorized
+                | Self::ShuttingDown
+                | Self::InvalidName
+                | Self::UnknownShard
+                | Self::JoinRateLimited
+                | Self::MessageRateLimited
         )
     }
 
@@ -372,6 +391,12 @@ impl ErrorCode {
             Self::ShapeMismatch => "shape_mismatch",
             Self::NonFinite => "non_finite",
             Self::UnexpectedMessage => "unexpected_message",
+            Self::JoinRateLimited => "join_rate_limited",
+            Self::MessageRateLimited => "message_rate_limited",
+            Self::UploadBudget => "upload_budget",
+            Self::VideoTooLarge => "video_too_large",
+            Self::TooManyVideos => "too_many_videos",
+            Self::UnrequestedVideo => "unrequested_video",
             Self::StaleRound => "stale_round",
             Self::DuplicateUpdate => "duplicate_update",
             Self::UnrequestedUpdate => "unrequested_update",

@@ -12,6 +12,7 @@ use fedvla_aggregator::control::{ControlAction, Controls, RunState, Settings};
 use fedvla_aggregator::coordinator::RunStatus;
 use fedvla_aggregator::events::{ClientState, RunEvent, RunObserver};
 use fedvla_aggregator::sessions::same_secret;
+use fedvla_federation::ErrorCode;
 use serde::Serialize;
 use tokio::sync::{broadcast, watch};
 
@@ -34,6 +35,8 @@ struct Hub {
     live: Mutex<Live>,
     /// Connections the listener closed at once because `max-connections` were open.
     refused_connections: AtomicU64,
+    /// Refusals of HTTP requests (rollout videos) by code; the WebSocket's are counted by the coordinator.
+    http_refusals: Mutex<BTreeMap<ErrorCode, u64>>,
 }
 
 #[derive(Default)]
@@ -68,6 +71,7 @@ pub struct RunSummary {
     pub skipped_rounds: u64,
     pub corrected_claims: u64,
     pub refused_connections: u64,
+    /// Refused client inputs by code, the WebSocket's and the HTTP uploads' together.
     pub rejections: BTreeMap<String, u64>,
 }
 
@@ -81,6 +85,7 @@ impl ConsoleHub {
             status,
             live: Mutex::new(Live::default()),
             refused_connections: AtomicU64::new(0),
+            http_refusals: Mutex::default(),
         }))
     }
 
@@ -112,10 +117,19 @@ impl ConsoleHub {
         self.0.refused_connections.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// Counts an HTTP request refused for `code`; the snapshot reports it among the rejections.
+    pub fn count_refusal(&self, code: ErrorCode) {
+        *self.0.http_refusals.lock().expect("refusal counts lock").entry(code).or_default() += 1;
+    }
+
     /// Everything the hub knows, as the snapshot reports it.
     pub fn live_snapshot(&self) -> LiveSnapshot {
         let status = self.0.status.borrow().clone();
         let (config, pending_settings) = self.0.controls.next_round();
+        let mut rejections = status.rejections.clone();
+        for (code, n) in self.0.http_refusals.lock().expect("refusal counts lock").iter() {
+            *rejections.entry(*code).or_default() += n;
+        }
         let live = self.live();
         LiveSnapshot {
             run: RunSummary {
@@ -129,7 +143,7 @@ impl ConsoleHub {
                 skipped_rounds: status.skipped_rounds,
                 corrected_claims: status.corrected_claims,
                 refused_connections: self.0.refused_connections.load(Ordering::Relaxed),
-                rejections: status.rejections.iter().map(|(c, n)| (c.as_str().to_owned(), *n)).collect(),
+                rejections: rejections.iter().map(|(c, n)| (c.as_str().to_owned(), *n)).collect(),
             },
             settings: Settings::of(&config),
             pending_settings,

@@ -1,0 +1,174 @@
+//! Each bound on what connections send refuses at its limit with its own code, is counted in the console's
+//! snapshot, and leaves the server serving everyone else: joins per address per minute, messages per second,
+//! rollout videos per round and their size, and the memory held for uploads in flight. (The connection cap and
+//! the timeouts are trust.rs's; oversized frames and updates, faults.rs's.)
+
+mod common;
+
+use std::net::Ipv4Addr;
+
+use common::*;
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::run_dir::RunDir;
+use fedvla_app::server::ServerHandle;
+use fedvla_federation::codec::encode_payload;
+use fedvla_federation::{ClientMessage, ErrorCode, PROTOCOL_VERSION, ServerMessage};
+use fedvla_workloads::linreg;
+use serde_json::Value;
+
+/// The console's snapshot, as an operator reads it.
+async fn snapshot(handle: &ServerHandle) -> Value {
+    let token = format!("Bearer {}", handle.operator_token());
+    let (status, body) = http(handle, "GET", "/console/api/snapshot", &[("authorization", &token)], Vec::new()).await;
+    assert_eq!(status, 200, "{body}");
+    serde_json::from_str(&body).unwrap()
+}
+
+/// How many refusals of `code` the console shows.
+async fn refusals(handle: &ServerHandle, code: ErrorCode) -> u64 {
+    snapshot(handle).await["run"]["rejections"][code.as_str()].as_u64().unwrap_or(0)
+}
+
+fn expect_error(message: Option<ServerMessage>, code: ErrorCode) {
+    match message {
+        Some(ServerMessage::Error { code: got, .. }) if got == code => {}
+        other => panic!("expected {}, got {other:?}", code.as_str()),
+    }
+}
+
+#[tokio::test]
+async fn joins_past_the_per_address_limit_are_refused_and_other_addresses_still_join() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("joins-per-address-per-minute=3 min-clients=5");
+    let handle = start(cfg.clone(), RunDir::create(base.path(), &cfg).unwrap()).await;
+    let mut joined = Vec::new();
+    for name in ["a", "b", "c"] {
+        joined.push(RawClient::join(&handle, name).await.0);
+    }
+    let mut fourth = RawClient::connect(&handle).await;
+    fourth.send(&join_message("d", PROTOCOL_VERSION)).await;
+    expect_error(fourth.recv().await, ErrorCode::JoinRateLimited);
+    assert_eq!(fourth.recv().await, None, "closed after the refusal");
+
+    let mut elsewhere = RawClient::connect_from(&handle, Ipv4Addr::new(127, 0, 0, 2)).await;
+    elsewhere.send(&join_message("e", PROTOCOL_VERSION)).await;
+    assert!(matches!(elsewhere.recv().await, Some(ServerMessage::Welcome { .. })), "another address joins");
+    wait_status(&handle, |s| s.connected == 4).await;
+    assert_eq!(refusals(&handle, ErrorCode::JoinRateLimited).await, 1);
+    handle.kill();
+}
+
+#[tokio::test]
+async fn a_connection_flooding_messages_is_closed_and_the_others_stay() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("max-messages-per-second=5 min-clients=5");
+    let handle = start(cfg.clone(), RunDir::create(base.path(), &cfg).unwrap()).await;
+    let (mut calm, _) = RawClient::join(&handle, "calm").await;
+    let (mut flood, _) = RawClient::join(&handle, "flood").await;
+    for _ in 0..3 {
+        calm.send(&ClientMessage::Heartbeat).await;
+    }
+    // A burst of five passes; the rest of a burst of fifty does not.
+    for _ in 0..50 {
+        flood.send(&ClientMessage::Heartbeat).await;
+    }
+    expect_error(flood.recv().await, ErrorCode::MessageRateLimited);
+    assert_eq!(flood.recv().await, None, "closed after the refusal");
+    let status = wait_status(&handle, |s| s.connected == 1).await;
+    assert_eq!(status.rejections.get(&ErrorCode::MessageRateLimited), Some(&1));
+    assert_eq!(refusals(&handle, ErrorCode::MessageRateLimited).await, 1);
+    let (_late, _) = RawClient::join(&handle, "late").await;
+    wait_status(&handle, |s| s.connected == 2).await;
+    handle.kill();
+}
+
+#[tokio::test]
+async fn rollout_videos_are_bounded_in_number_and_size() {
+    let err = RunConfig::default().with_overrides("client-rollout-episodes=3 max-rollout-videos=2").unwrap_err();
+    assert!(err.to_string().contains("max-rollout-videos (2)"), "{err}");
+
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config(
+        "num-server-rounds=1 min-clients=1 min-fit=1 client-rollout-episodes=2 max-rollout-videos=2 \
+         max-video-bytes=1000",
+    );
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let (mut c, client_id, session) = RawClient::join_shard(&handle, "filmer", Some(0)).await;
+    let auth = format!("Bearer {session}");
+    let post = async |round: u64, file: &str, len: usize| {
+        http(&handle, "POST", &format!("/rollout/{round}/{file}"), &[("authorization", &auth)], vec![1; len]).await
+    };
+    let round = c.task().await.round;
+    let (status, body) = post(round, "big.webm", 1001).await;
+    assert_eq!(status, 413, "{body}");
+    for file in ["a.webm", "b.webm"] {
+        let (status, body) = post(round, file, 1000).await;
+        assert_eq!(status, 201, "{body}");
+    }
+    assert_eq!(post(round, "c.webm", 10).await.0, 403, "two videos asked, two taken");
+    assert_eq!(post(round + 1, "d.webm", 10).await.0, 403, "a round that asked for none");
+    for (code, n) in [(ErrorCode::VideoTooLarge, 1), (ErrorCode::TooManyVideos, 1), (ErrorCode::UnrequestedVideo, 1)] {
+        assert_eq!(refusals(&handle, code).await, n, "{}", code.as_str());
+    }
+    c.upload(round, &linreg_head(0.1, 0.1), linreg::train_examples(0) as u64).await;
+    assert_eq!(handle.finish().await.unwrap().completed_rounds, 1);
+    let dir = run_dir.client_eval_dir(round, client_id);
+    assert!(dir.join("a.webm").exists() && dir.join("b.webm").exists());
+    assert!(!dir.join("big.webm").exists() && !dir.join("c.webm").exists());
+}
+
+#[tokio::test]
+async fn uploads_past_the_memory_budget_are_refused_until_the_one_in_flight_is_done() {
+    let update = linreg_head(0.2, -0.2);
+    let payload = encode_payload(&update).len();
+    let base = tempfile::tempdir().unwrap();
+    // Room for exactly one update (or one video of that size) at a time.
+    let cfg = config(&format!(
+        "num-server-rounds=1 min-clients=2 min-fit=1 client-rollout-episodes=1 max-video-bytes={payload} \
+         max-upload-memory-bytes={payload}"
+    ));
+    let too_small = cfg.with_overrides(&format!("max-upload-memory-bytes={} max-video-bytes=1", payload - 1)).unwrap();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let other = tempfile::tempdir().unwrap();
+    let err = fedvla_app::server::start(
+        parts(too_small.clone(), RunDir::create(other.path(), &too_small).unwrap()),
+        listener,
+    )
+    .err()
+    .expect("a budget below one update refuses to start");
+    assert!(err.to_string().contains("cannot hold one update"), "{err}");
+
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let (mut first, first_id, _) = RawClient::join_shard(&handle, "first", Some(0)).await;
+    let (mut second, _, session) = RawClient::join_shard(&handle, "second", Some(1)).await;
+    let round = first.task().await.round;
+    second.task().await;
+    let examples = linreg::train_examples(0) as u64;
+    first.send(&ClientMessage::UpdateHeader { round, examples, train_loss: 1.0, payload_bytes: payload as u64 }).await;
+    // The header is in once the console shows the client uploading: the budget is taken.
+    loop {
+        let clients = snapshot(&handle).await["clients"].clone();
+        let row = clients.as_array().unwrap().iter().find(|c| c["id"] == first_id).cloned().unwrap();
+        if row["state"] == "uploading" {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let auth = format!("Bearer {session}");
+    let (status, body) =
+        http(&handle, "POST", &format!("/rollout/{round}/v.webm"), &[("authorization", &auth)], vec![1; payload]).await;
+    assert_eq!(status, 503, "{body}");
+    second.upload(round, &linreg_head(0.3, 0.3), linreg::train_examples(1) as u64).await;
+    expect_error(second.recv().await, ErrorCode::UploadBudget);
+    assert_eq!(refusals(&handle, ErrorCode::UploadBudget).await, 2, "the video and the update");
+
+    // The update in flight goes on and is aggregated.
+    for frame in fedvla_federation::codec::encode_update(&update, round, 64) {
+        first.send_binary(frame).await;
+    }
+    let status = handle.finish().await.unwrap();
+    assert_eq!((status.completed_rounds, status.rejections.get(&ErrorCode::UploadBudget)), (1, Some(&1)));
+    assert_eq!(run_dir.load_model(1).unwrap(), update);
+}

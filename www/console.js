@@ -193,6 +193,14 @@ function renderSettings(settings, pending) {
   $("#settings-pending").textContent = waiting.length ? `Waiting for the next round: ${waiting.join(", ")}` : "";
 }
 
+/// What a client trains on: the server's shard (its example count verified) or its own data (a claim).
+function dataSource(data) {
+  if (!data) return "";
+  if (data.kind === "shard") return `shard ${data.index} (${data.examples} examples)`;
+  const capped = data.weight < data.claimed_examples ? `, weighed as ${data.weight}` : "";
+  return `own dataset (${data.claimed_examples} examples claimed${capped})`;
+}
+
 function upsertClientRow(client) {
   const body = $("#clients tbody");
   let row = body.querySelector(`tr[data-client-id="${client.id}"]`);
@@ -205,6 +213,7 @@ function upsertClientRow(client) {
     String(client.id),
     client.name,
     client.backend,
+    dataSource(client.data),
     client.state,
     new Date(client.last_seen_ms).toLocaleTimeString(),
     String(client.updates_accepted),
@@ -215,7 +224,7 @@ function upsertClientRow(client) {
     cell.textContent = text;
     return cell;
   });
-  cells[3].className = `state-${client.state}`;
+  cells[4].className = `state-${client.state}`;
   row.replaceChildren(...cells);
 }
 

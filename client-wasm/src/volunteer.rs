@@ -88,7 +88,8 @@ pub async fn run_volunteer(
         .await
         .map_err(|e| js_error(format!("{e}")))?;
     let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
-    let options = ClientOptions { name: name.clone(), auth_token: None, shard: Some(trainer.shard_index) };
+    let data = Some(trainer.inner.examples().data_report(None));
+    let options = ClientOptions { name: name.clone(), auth_token: None, shard: Some(trainer.shard_index), data };
     let sink = status.clone();
     let summary = run_client(&mut transport, &mut trainer, &options, move |event| report(&sink, event))
         .await
@@ -182,6 +183,10 @@ impl LocalTrainer for BrowserTrainer {
 
     fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
         self.inner.set_correction(correction)
+    }
+
+    fn set_norm_stats(&mut self, stats: &fedvla_federation::NormalizationStats) -> Result<(), BoxError> {
+        self.inner.set_norm_stats(stats)
     }
 
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {

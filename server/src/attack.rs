@@ -83,6 +83,10 @@ impl<T: LocalTrainer> LocalTrainer for Attacker<T> {
         self.inner.set_correction(correction)
     }
 
+    fn set_norm_stats(&mut self, stats: &fedvla_federation::NormalizationStats) -> Result<(), BoxError> {
+        self.inner.set_norm_stats(stats)
+    }
+
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         let mut out = self.inner.train(task).await?;
         if let Some(global) = &self.global {

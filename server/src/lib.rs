@@ -6,4 +6,5 @@
 pub mod attack;
 pub mod experiment;
 pub mod native_client;
+pub mod own_dataset;
 pub mod runs;

@@ -1,7 +1,7 @@
 //! The native volunteer: its I/O (tokio-tungstenite for the WebSocket, HTTP/1.1 requests with hyper for the
 //! shared start-up's downloads ([`Fetch`]) and its uploads, each over TCP or, for `https://` and `wss://`
 //! servers, TLS ([`Dialer`])) and [`volunteer`], what `fedvla join` and every client of `fedvla simulate` run:
-//! the same downloads and round loop as the browser's.
+//! the same downloads and round loop as the browser's, on a server shard or on the volunteer's own dataset.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -10,14 +10,18 @@ use std::time::Instant;
 use burn::tensor::Device;
 use fedvla_aggregator::config::{AttackKind, Partitioning};
 use fedvla_federation::{
-    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, Video, WorkloadKind, fnv1a,
-    routes, run_client,
+    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, OwnDataset, Video,
+    WorkloadKind, fnv1a, routes, run_client,
 };
-use fedvla_learner::volunteer::{Fetch, fetch_setup, smolvla_volunteer};
+use fedvla_learner::volunteer::{
+    Fetch, fetch_own_data_setup, fetch_setup, fetch_tokenizer, policy_config, smolvla_volunteer, smolvla_volunteer_on,
+    volunteer_seed,
+};
 use fedvla_workloads::linreg::LinRegTrainer;
 use fedvla_workloads::sim_eval::FilmedRollouts;
 
 use crate::attack::{Attack, Attacker};
+use crate::own_dataset::pack_own_dataset;
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
@@ -205,25 +209,44 @@ impl ClientTransport for NativeTransport {
     }
 }
 
-/// Volunteer `name` of the server at `server` (`ws://`, `http://`, `host:port`, or over TLS `wss://`, `https://`,
-/// trusting the Mozilla roots and those of the PEM file `ca_cert`) until the run finishes: fetches its setup (on
-/// `shard` when given), builds the trainer the server's workload needs from what it downloads, and runs the
-/// shared round loop, reporting to `on_event`. With `attack` (simulations only) its updates are corrupted.
-pub async fn volunteer(
-    server: &str,
-    ca_cert: Option<&Path>,
-    name: &str,
-    shard: Option<u32>,
-    auth_token: Option<String>,
-    attack: Option<Attack>,
-    on_event: impl FnMut(ClientEvent),
-) -> Result<ClientSummary, BoxError> {
+/// What a volunteer trains on.
+#[derive(Debug, Clone, Copy)]
+pub enum VolunteerData<'a> {
+    /// A shard the server serves: this one, or the one it assigns.
+    Shard(Option<u32>),
+    /// The LeRobot dataset at this path on the volunteer's machine; it never leaves it.
+    Own(&'a Path),
+}
+
+/// A volunteer of the server at `server` (`ws://`, `http://`, `host:port`, or over TLS `wss://`, `https://`,
+/// trusting the Mozilla roots and those of the PEM file `ca_cert`).
+pub struct Volunteer<'a> {
+    pub server: &'a str,
+    pub ca_cert: Option<&'a Path>,
+    pub name: &'a str,
+    pub data: VolunteerData<'a>,
+    pub auth_token: Option<String>,
+    /// Corrupts its updates (simulations only).
+    pub attack: Option<Attack>,
+}
+
+/// `v` until the run finishes: fetches its setup, builds the trainer the server's workload needs from what it
+/// downloads (and, with its own dataset, from that), and runs the shared round loop, reporting to `on_event`.
+pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> Result<ClientSummary, BoxError> {
+    let Volunteer { server, ca_cert, name, data, auth_token, attack } = v;
     let mut transport = NativeTransport::connect_trusting(server, ca_cert).await?.with_auth_token(auth_token.clone());
-    let setup = fetch_setup(&transport, name, shard).await?;
+    let setup = match data {
+        VolunteerData::Shard(shard) => fetch_setup(&transport, name, shard).await?,
+        VolunteerData::Own(_) => fetch_own_data_setup(&transport, name).await?,
+    };
     tracing::info!(workload = ?setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
-    let options = ClientOptions { name: name.to_owned(), auth_token, shard: Some(setup.shard_index) };
+    let shard = matches!(data, VolunteerData::Shard(_)).then_some(setup.shard_index);
+    let mut options = ClientOptions { name: name.to_owned(), auth_token, shard, data: None };
     match setup.workload {
         WorkloadKind::Linreg => {
+            if let VolunteerData::Own(root) = data {
+                return Err(format!("the server runs linreg, which takes no own dataset ({})", root.display()).into());
+            }
             // The linreg shard is generated from its index; the setup says how the data is split.
             let partitioning: Partitioning = serde_json::from_value(setup.policy["partitioning"].clone())
                 .map_err(|e| format!("the linreg setup's partitioning: {e}"))?;
@@ -235,7 +258,23 @@ pub async fn volunteer(
         }
         WorkloadKind::Smolvla => {
             let device = Device::flex().autodiff();
-            let mut trainer = smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?;
+            let (mut trainer, own) = match data {
+                VolunteerData::Shard(_) => {
+                    (smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?, None)
+                }
+                VolunteerData::Own(root) => {
+                    let run = setup.dataset_signature.as_ref().ok_or("the server takes no own datasets")?;
+                    let tokenizer = fetch_tokenizer(&transport, &setup).await?;
+                    let cfg = policy_config(&setup)?;
+                    let packed = pack_own_dataset(root, run, &cfg, &tokenizer, volunteer_seed(name))?;
+                    let trainer =
+                        smolvla_volunteer_on(&transport, &setup, name, packed.shard, &device, "cpu-flex").await?;
+                    let train_examples = trainer.examples().train_examples();
+                    tracing::info!(dataset = %root.display(), train_examples, "training on the volunteer's own dataset");
+                    (trainer, Some(OwnDataset { signature: packed.signature, train_examples }))
+                }
+            };
+            options.data = Some(trainer.examples().data_report(own));
             if poisons_labels(attack) {
                 trainer.shuffle_labels(fnv1a(name));
             }

@@ -24,7 +24,7 @@ use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
 use crate::attack::Attack;
-use crate::native_client;
+use crate::native_client::{self, Volunteer, VolunteerData};
 
 /// Where a run shows its progress bars (hidden inside an experiment, which has one bar for its grid).
 #[derive(Clone)]
@@ -182,35 +182,39 @@ fn spawn_client(
         let client = async move {
             let name = format!("client-{shard}");
             let Server { url, ca_cert, auth_token } = server;
-            let shard_index = Some(shard as u32);
-            let summary =
-                native_client::volunteer(&url, ca_cert.as_deref(), &name, shard_index, auth_token, attack, |event| {
-                    match event {
-                        ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
-                        ClientEvent::Task { round, local_steps } => {
-                            bar.set_message(format!("round {round}: training {local_steps} steps"));
-                        }
-                        ClientEvent::Trained { round, train_loss, .. } => {
-                            bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
-                        }
-                        ClientEvent::Uploaded { round, bytes, .. } => {
-                            bar.set_message(format!("round {round}: sent {bytes} B"));
-                        }
-                        ClientEvent::RolledOut { round, episodes, successes } => {
-                            bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
-                        }
-                        ClientEvent::RoundClosed { round, accepted } => {
-                            if accepted {
-                                bar.set_position(round);
-                            }
-                        }
-                        ClientEvent::Refused { code, .. } => {
-                            bar.set_message(format!("refused: {}", code.as_str()));
-                        }
+            let volunteer = Volunteer {
+                server: &url,
+                ca_cert: ca_cert.as_deref(),
+                name: &name,
+                data: VolunteerData::Shard(Some(shard as u32)),
+                auth_token,
+                attack,
+            };
+            let summary = native_client::volunteer(volunteer, |event| match event {
+                ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
+                ClientEvent::Task { round, local_steps } => {
+                    bar.set_message(format!("round {round}: training {local_steps} steps"));
+                }
+                ClientEvent::Trained { round, train_loss, .. } => {
+                    bar.set_message(format!("round {round}: loss {train_loss:.4}, uploading"));
+                }
+                ClientEvent::Uploaded { round, bytes, .. } => {
+                    bar.set_message(format!("round {round}: sent {bytes} B"));
+                }
+                ClientEvent::RolledOut { round, episodes, successes } => {
+                    bar.set_message(format!("round {round}: {successes}/{episodes} sim successes, training"));
+                }
+                ClientEvent::RoundClosed { round, accepted } => {
+                    if accepted {
+                        bar.set_position(round);
                     }
-                })
-                .await
-                .map_err(boxed)?;
+                }
+                ClientEvent::Refused { code, .. } => {
+                    bar.set_message(format!("refused: {}", code.as_str()));
+                }
+            })
+            .await
+            .map_err(boxed)?;
             bar.finish_with_message(format!(
                 "{} rounds, {} B up, {} B down",
                 summary.rounds_trained, summary.bytes_up, summary.bytes_down

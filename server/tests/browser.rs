@@ -60,7 +60,8 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
             let mut trainer = smolvla_volunteer(&transport, &setup, "native-0", &Device::flex().autodiff(), "cpu-flex")
                 .await
                 .unwrap();
-            let options = ClientOptions { name: "native-0".into(), auth_token: None, shard: Some(setup.shard_index) };
+            let options =
+                ClientOptions { name: "native-0".into(), auth_token: None, shard: Some(setup.shard_index), data: None };
             run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap();
         })
     })

@@ -142,7 +142,7 @@ fn spawn_clients(
                         smolvla_volunteer(&transport, &setup, &name, &device, "cpu-flex").await.unwrap(),
                     );
                     let mut trainer = Recording { inner, updates: recorded, hang_from_round };
-                    let options = ClientOptions { name, auth_token: None, shard: Some(shard) };
+                    let options = ClientOptions { name, auth_token: None, shard: Some(shard), data: None };
                     run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
                 })
             });

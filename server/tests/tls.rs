@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use common::*;
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_federation::{NamedTensors, routes};
-use fedvla_server::native_client::{Dialer, NativeTransport, http_request, volunteer};
+use fedvla_server::native_client::{Dialer, NativeTransport, Volunteer, VolunteerData, http_request, volunteer};
 use hyper::body::Bytes;
 
 /// A self-signed certificate for 127.0.0.1 and its key, as PEM files in `dir`.
@@ -49,9 +49,11 @@ async fn volunteers_join_over_tls_and_nothing_else_gets_in() {
         .map(|shard| {
             let (url, cert) = (format!("wss://{addr}"), cert.clone());
             tokio::spawn(async move {
-                volunteer(&url, Some(&cert), &format!("client-{shard}"), Some(shard), None, None, |_| {})
-                    .await
-                    .map_err(|e| e.to_string())
+                let name = format!("client-{shard}");
+                let data = VolunteerData::Shard(Some(shard));
+                let v =
+                    Volunteer { server: &url, ca_cert: Some(&cert), name: &name, data, auth_token: None, attack: None };
+                volunteer(v, |_| {}).await.map_err(|e| e.to_string())
             })
         })
         .collect();

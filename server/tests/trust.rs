@@ -11,6 +11,7 @@ use fedvla_aggregator::registry::Registry;
 use fedvla_aggregator::registry::VOLUNTEERS_FILE;
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_federation::{ErrorCode, Evaluator, FedAvg, ServerMessage, TrainOutput, aggregate};
+use fedvla_server::native_client::{Volunteer, VolunteerData};
 use fedvla_workloads::linreg::{self, LinRegEvaluator};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -300,17 +301,16 @@ async fn downloads_of_a_run_with_an_auth_token_need_it() {
         .map(|shard| {
             let url = url.clone();
             tokio::spawn(async move {
-                fedvla_server::native_client::volunteer(
-                    &url,
-                    None,
-                    &format!("client-{shard}"),
-                    Some(shard),
-                    Some("s3cret".into()),
-                    None,
-                    |_| {},
-                )
-                .await
-                .map_err(|e| e.to_string())
+                let name = format!("client-{shard}");
+                let volunteer = Volunteer {
+                    server: &url,
+                    ca_cert: None,
+                    name: &name,
+                    data: VolunteerData::Shard(Some(shard)),
+                    auth_token: Some("s3cret".into()),
+                    attack: None,
+                };
+                fedvla_server::native_client::volunteer(volunteer, |_| {}).await.map_err(|e| e.to_string())
             })
         })
         .collect();

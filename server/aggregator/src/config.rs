@@ -209,6 +209,8 @@ pub struct RunConfig {
     pub dataset_tasks: Vec<TaskKind>,
     pub num_clients: usize,
     pub partitioning: Partitioning,
+    pub federated_stats: bool,
+    pub own_data_max_examples: u64,
     pub model_size: String,
     pub init_policy: String,
     pub export_dtype: ExportDtype,
@@ -587,7 +589,6 @@ impl RunConfig {
         Ok(())
     }
 }
-
 
 /// Parses `raw` as a TOML value of the same type as `current`.
 fn parse_value(raw: &str, current: &toml::Value) -> Result<toml::Value, String> {

@@ -4,7 +4,7 @@
 
 use serde::Serialize;
 
-use crate::records::MetricsLine;
+use crate::records::{DataSource, MetricsLine};
 
 /// What a client is doing, as far as the server can tell from its messages.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -24,6 +24,7 @@ pub enum RunEvent {
         id: u64,
         name: String,
         backend: String,
+        data: Option<DataSource>,
     },
     ClientState {
         id: u64,

@@ -87,14 +87,46 @@ pub struct SimFigures {
     pub rollout_mean_length: f64,
 }
 
+/// What a client trains on, as the server knows it: the example count of a shard it built is one it verified;
+/// an own dataset's is the client's claim, weighed no more than `own-data-max-examples`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case")]
+pub enum DataSource {
+    /// Shard `index` of the run's dataset, served by the server.
+    Shard { index: usize, examples: u64 },
+    /// The volunteer's own dataset, which never leaves its machine.
+    Own { claimed_examples: u64, weight: u64 },
+}
+
+impl DataSource {
+    /// What the client's updates weigh.
+    pub fn weight(self) -> u64 {
+        match self {
+            Self::Shard { examples, .. } => examples,
+            Self::Own { weight, .. } => weight,
+        }
+    }
+
+    /// The example count its updates should claim.
+    pub fn expected_claim(self) -> u64 {
+        match self {
+            Self::Shard { examples, .. } => examples,
+            Self::Own { claimed_examples, .. } => claimed_examples,
+        }
+    }
+}
+
 /// One sampled client of a round.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct ClientRecord {
     pub client_id: u64,
     pub name: String,
+    /// What it trains on (none for a workload without shards).
+    #[serde(default)]
+    pub data: Option<DataSource>,
     /// Whether its update went into the round's aggregate.
     pub accepted: bool,
-    /// What its update weighed: its shard's training examples.
+    /// What its update weighed: its shard's training examples, or its own dataset's claim within the cap.
     pub examples: Option<u64>,
     /// What its update's header claimed.
     pub claimed_examples: Option<u64>,

@@ -1,5 +1,5 @@
 //! Who trains on which shard: what a workload offers volunteers ([`VolunteerOffer`]: its shards with their
-//! training examples, the policy, the frozen weights) and the registry of volunteer names, their shards and the
+//! training examples, the policy, the frozen weights, what an own dataset must match) and the registry of volunteer names, their shards and the
 //! client ids handed out ([`Volunteers`]), bounded, and persisted in the run directory (`volunteers.json`) so a
 //! restarted server keeps every volunteer on its shard and never hands out an id twice.
 
@@ -9,10 +9,11 @@ use std::sync::{Mutex, MutexGuard};
 
 use bytes::Bytes;
 use fedvla_federation::protocol::MAX_NAME_BYTES;
-use fedvla_federation::{ErrorCode, WorkloadKind};
+use fedvla_federation::{DatasetSignature, ErrorCode, NormalizationStats, OwnDataset, WorkloadKind};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::records::DataSource;
 use crate::run_dir::{RunDir, RunDirError, write_atomic};
 
 /// The registry's file in the run directory.
@@ -43,13 +44,28 @@ pub struct VolunteerOffer {
     /// The sim task's token ids and mask.
     pub rollout_task_tokens: Vec<u32>,
     pub rollout_task_mask: Vec<bool>,
+    /// What a volunteer's own dataset must match; `None`: the run takes no own datasets.
+    pub signature: Option<DatasetSignature>,
+    /// The dataset's normalisation statistics, when the workload normalises.
+    pub norm_stats: Option<NormalizationStats>,
+    /// The run's tokenizer (`tokenizer.json`), for volunteers that tokenize their own tasks.
+    pub tokenizer: Option<Bytes>,
 }
 
 impl VolunteerOffer {
-    /// An offer of `shards` and nothing else: no configuration, no weights to download.
+    /// An offer of `shards` and nothing else: no configuration, no weights to download, no own datasets.
     pub fn shards_only(workload: WorkloadKind, shards: Vec<ShardOffer>) -> Self {
-        let policy = serde_json::Value::Null;
-        Self { workload, shards, policy, frozen: None, rollout_task_tokens: Vec::new(), rollout_task_mask: Vec::new() }
+        Self {
+            workload,
+            shards,
+            policy: serde_json::Value::Null,
+            frozen: None,
+            rollout_task_tokens: Vec::new(),
+            rollout_task_mask: Vec::new(),
+            signature: None,
+            norm_stats: None,
+            tokenizer: None,
+        }
     }
 }
 
@@ -70,6 +86,10 @@ pub enum VolunteerError {
     UnknownShard { index: usize, count: usize },
     #[error("shard {index} has no file: clients generate it from its index")]
     NoFile { index: usize },
+    #[error("this run takes no own datasets (its workload has no dataset to match them against)")]
+    NoOwnData,
+    #[error("{0}")]
+    IncompatibleDataset(String),
 }
 
 impl VolunteerError {
@@ -77,6 +97,7 @@ impl VolunteerError {
         match self {
             Self::InvalidName { .. } => ErrorCode::InvalidName,
             Self::UnknownShard { .. } | Self::NoFile { .. } => ErrorCode::UnknownShard,
+            Self::NoOwnData | Self::IncompatibleDataset(_) => ErrorCode::IncompatibleDataset,
         }
     }
 }
@@ -120,14 +141,22 @@ pub struct Volunteers {
     frozen_tag: Option<String>,
     registry: Mutex<Registry>,
     max_names: usize,
+    /// The most an own dataset's updates weigh.
+    own_data_max_examples: u64,
     run_dir: RunDir,
     /// Held while the registry is written, so the last write is the newest state.
     writing: Mutex<()>,
 }
 
 impl Volunteers {
-    /// The volunteers of the run in `run_dir`, continuing its saved registry if it has one.
-    pub fn new(offer: VolunteerOffer, run_dir: RunDir, max_names: usize) -> Result<Self, RunDirError> {
+    /// The volunteers of the run in `run_dir`, continuing its saved registry if it has one; own datasets weigh at
+    /// most `own_data_max_examples` (0: as much as the largest shard).
+    pub fn new(
+        offer: VolunteerOffer,
+        run_dir: RunDir,
+        max_names: usize,
+        own_data_max_examples: u64,
+    ) -> Result<Self, RunDirError> {
         let frozen_tag = offer.frozen.as_ref().map(|bytes| {
             let digest = Sha256::digest(bytes);
             digest[..8].iter().map(|b| format!("{b:02x}")).collect()
@@ -143,7 +172,19 @@ impl Volunteers {
             Err(source) => return Err(RunDirError::Io { path, source }),
         };
         registry.next_client_id = registry.reserved_client_ids.max(1);
-        Ok(Self { offer, frozen_tag, registry: Mutex::new(registry), max_names, run_dir, writing: Mutex::default() })
+        let own_data_max_examples = match own_data_max_examples {
+            0 => offer.shards.iter().map(|s| s.train_examples).max().unwrap_or(0),
+            cap => cap,
+        };
+        Ok(Self {
+            offer,
+            frozen_tag,
+            registry: Mutex::new(registry),
+            max_names,
+            own_data_max_examples,
+            run_dir,
+            writing: Mutex::default(),
+        })
     }
 
     /// The shard of volunteer `name`: `requested` when given (it becomes the name's shard), else the name's
@@ -179,18 +220,38 @@ impl Volunteers {
         Ok((Some(ShardBinding { index, train_examples: self.offer.shards[index].train_examples }), changed))
     }
 
-    /// A joining client: its (never reused) id, the shard it trains on as [`Volunteers::assign`] picks it, and
-    /// whether the registry must be persisted before the client is welcomed.
+    /// A joining client: its (never reused) id, what it trains on (its own dataset, checked against the run's,
+    /// or the shard [`Volunteers::assign`] picks), and whether the registry must be persisted before the client is
+    /// welcomed.
     pub fn join(
         &self,
         name: &str,
         requested: Option<u32>,
-    ) -> Result<(u64, Option<ShardBinding>, bool), VolunteerError> {
-        let (shard, changed) = self.assign(Some(name), requested.map(|s| s as usize))?;
+        own: Option<&OwnDataset>,
+    ) -> Result<(u64, Option<DataSource>, bool), VolunteerError> {
+        let (data, changed) = match own {
+            Some(own) => {
+                check_name(name)?;
+                (Some(self.own_data(own)?), false)
+            }
+            None => {
+                let (shard, changed) = self.assign(Some(name), requested.map(|s| s as usize))?;
+                let data = shard.map(|s| DataSource::Shard { index: s.index, examples: s.train_examples });
+                (data, changed)
+            }
+        };
         let mut registry = self.registry();
         let id = registry.next_client_id;
         registry.next_client_id += 1;
-        Ok((id, shard, changed || registry.next_client_id + CLIENT_ID_BLOCK / 2 >= registry.reserved_client_ids))
+        Ok((id, data, changed || registry.next_client_id + CLIENT_ID_BLOCK / 2 >= registry.reserved_client_ids))
+    }
+
+    /// An own dataset, if it fits the run: weighed by its claimed training examples, at most the cap.
+    fn own_data(&self, own: &OwnDataset) -> Result<DataSource, VolunteerError> {
+        let run = self.offer.signature.as_ref().ok_or(VolunteerError::NoOwnData)?;
+        own.signature.check_fits(run).map_err(VolunteerError::IncompatibleDataset)?;
+        let weight = own.train_examples.min(self.own_data_max_examples);
+        Ok(DataSource::Own { claimed_examples: own.train_examples, weight })
     }
 
     /// Writes the registry (`volunteers.json`), reserving the next block of client ids when the current one is

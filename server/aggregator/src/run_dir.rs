@@ -7,7 +7,7 @@ use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use fedvla_federation::{BoxError, NamedTensors, TensorError};
+use fedvla_federation::{BoxError, NamedTensors, NormalizationStats, TensorError};
 
 use crate::config::{ConfigError, RunConfig};
 pub use crate::records::{METRICS_FILE, RESULTS_FILE};
@@ -25,6 +25,8 @@ pub const EVALUATE_DIR: &str = "evaluate";
 pub const TRAINABLE_FILE: &str = "trainable.safetensors";
 /// What the strategy carries into the next round (server moments, control variates), when it carries anything.
 pub const STRATEGY_FILE: &str = "strategy.safetensors";
+/// The normalisation statistics a run agreed by federated statistics, written once before round 1.
+pub const NORM_STATS_FILE: &str = "norm_stats.json";
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunDirError {
@@ -56,6 +58,13 @@ pub trait ModelExporter: Send + Sync {
         config: &RunConfig,
         dir: &Path,
     ) -> Result<Option<SimFigures>, BoxError>;
+
+    /// Exports with `stats` from now on (the run's, once agreed by federated statistics). Exporters that write no
+    /// normalisation ignore them.
+    fn set_norm_stats(&self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        let _ = stats;
+        Ok(())
+    }
 }
 
 /// Writes the trainable tensors as `trainable.safetensors` (always on: resume needs it).
@@ -127,6 +136,26 @@ impl RunDir {
 
     pub fn write_config(&self, config: &RunConfig) -> Result<(), RunDirError> {
         write_atomic(&self.path.join(CONFIG_FILE), config.to_toml().as_bytes())
+    }
+
+    /// Records the statistics the run agreed by federated statistics.
+    pub fn write_norm_stats(&self, stats: &NormalizationStats) -> Result<(), RunDirError> {
+        let json = serde_json::to_vec_pretty(stats).expect("statistics serialize");
+        write_atomic(&self.path.join(NORM_STATS_FILE), &json)
+    }
+
+    /// The statistics the run agreed, when it has.
+    pub fn read_norm_stats(&self) -> Result<Option<NormalizationStats>, RunDirError> {
+        let path = self.path.join(NORM_STATS_FILE);
+        match fs::read(&path) {
+            Ok(bytes) => serde_json::from_slice(&bytes).map(Some).map_err(|e| RunDirError::Metrics {
+                line: e.line(),
+                message: e.to_string(),
+                path,
+            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(source) => Err(RunDirError::Io { path, source }),
+        }
     }
 
     /// The last round with a metrics line, dropping a torn last line left by a crash mid-write.

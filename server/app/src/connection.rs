@@ -11,7 +11,8 @@ use std::time::Duration;
 use axum::extract::ws::Message;
 use fedvla_federation::codec::decode_payload;
 use fedvla_federation::{
-    ClientMessage, CodecError, ErrorCode, PROTOCOL_VERSION, Reassembler, ServerMessage, UpdateValues,
+    ClientMessage, CodecError, ErrorCode, NormalizationStats, PROTOCOL_VERSION, Reassembler, ServerMessage,
+    UpdateValues,
 };
 use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
@@ -152,8 +153,8 @@ where
             self.refuse(ErrorCode::JoinRateLimited, format!("{peer} has joined too often in the last minute")).await;
             return None;
         }
-        let (name, capabilities, shard) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
-            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities, shard }) => {
+        let (name, capabilities, shard, report) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
+            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities, shard, data }) => {
                 if protocol_version != PROTOCOL_VERSION {
                     let message =
                         format!("client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}");
@@ -166,7 +167,12 @@ where
                     self.refuse(ErrorCode::Unauthorized, "missing or wrong auth token".into()).await;
                     return None;
                 }
-                (name, capabilities, shard)
+                // Moments that could never combine are refused now, not when the run agrees its statistics.
+                if let Some(Err(e)) = data.as_ref().map(|d| NormalizationStats::combine(&[d])) {
+                    self.refuse(ErrorCode::MalformedMessage, format!("the join's data moments: {e}")).await;
+                    return None;
+                }
+                (name, capabilities, shard, data)
             }
             Ok(other) => {
                 self.refuse(ErrorCode::UnexpectedMessage, format!("the first message must be a join, got {other:?}"))
@@ -178,7 +184,8 @@ where
                 return None;
             }
         };
-        let (client_id, shard, persist) = match self.state.volunteers.join(&name, shard) {
+        let own = report.as_ref().and_then(|r| r.own.as_ref());
+        let (client_id, data, persist) = match self.state.volunteers.join(&name, shard, own) {
             Ok(joined) => joined,
             Err(e) => {
                 self.refuse(e.code(), e.to_string()).await;
@@ -192,8 +199,8 @@ where
         }
         self.client_id = Some(client_id);
         let (outbox, inbox) = mpsc::unbounded_channel();
-        tracing::info!(client_id, %name, shard = ?shard.map(|s| s.index), backend = %capabilities.backend, "client joined");
-        let joined = Event::Joined { client_id, name, capabilities, shard, outbox };
+        tracing::info!(client_id, %name, ?data, backend = %capabilities.backend, "client joined");
+        let joined = Event::Joined { client_id, name, capabilities, data, report, outbox };
         if self.state.events.send(joined).await.is_err() {
             return None;
         }
@@ -433,7 +440,7 @@ mod tests {
                 keepalive: KEEPALIVE,
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
-                volunteers: Arc::new(Volunteers::new(offer, run_dir, 16).unwrap()),
+                volunteers: Arc::new(Volunteers::new(offer, run_dir, 16, 0).unwrap()),
                 sessions: Sessions::default(),
                 joins: JoinLimiter::new(60),
                 messages_per_second: 50,
@@ -472,6 +479,7 @@ mod tests {
                 name: "c".into(),
                 capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
                 shard: None,
+                data: None,
             });
         }
 

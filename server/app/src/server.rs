@@ -95,7 +95,19 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     };
     let sessions = Sessions::default();
     let auth_token: Option<Arc<str>> = config.auth_token().map(Arc::from);
-    let volunteers = Arc::new(Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names)?);
+    // A run that agrees its statistics by federated statistics has none until round 1 (or a resume reads them).
+    let dataset_stats = volunteer.norm_stats.clone();
+    let norm_stats = match run_dir.read_norm_stats()? {
+        Some(agreed) => Some(agreed),
+        None if config.federated_stats => None,
+        None => dataset_stats.clone(),
+    };
+    let volunteers = Arc::new(Volunteers::new(
+        volunteer,
+        run_dir.clone(),
+        config.max_volunteer_names,
+        config.own_data_max_examples,
+    )?);
     let state = AppState {
         socket: SocketState {
             events: events_tx,
@@ -141,6 +153,8 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         controls,
         observer: Arc::new(console.clone()),
         sessions,
+        norm_stats,
+        dataset_stats,
     };
     let addr = listener.local_addr()?;
     let coordinator = tokio::spawn(coordinator.run());

@@ -1,5 +1,6 @@
 //! What volunteers download and upload over HTTP, beside the WebSocket: the setup (`GET /api/volunteer`: which
-//! shard to train on, the policy configuration, where the frozen weights are), the shard and its manifest, the
+//! shard to train on, the policy configuration, where the frozen weights are), the run's tokenizer (for a
+//! volunteer that tokenizes its own dataset's tasks), the shard and its manifest, the
 //! frozen weights (named by content hash so browsers cache them forever), the global model, and rollout videos
 //! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked, within
 //! `max-rollout-videos`, `max-video-bytes` and the upload budget; each refusal counted on the console), and a
@@ -32,6 +33,7 @@ pub fn routes() -> Router<AppState> {
     Router::new()
         .route(routes::VOLUNTEER, get(get_setup))
         .route(routes::FROZEN, get(get_frozen))
+        .route(routes::TOKENIZER, get(get_tokenizer))
         .route(routes::SHARD, get(get_shard))
         .route(routes::SHARD_MANIFEST, get(get_shard_manifest))
         .route(routes::MODEL, get(get_model))
@@ -67,6 +69,9 @@ struct SetupQuery {
     name: Option<String>,
     /// A shard the volunteer wants (`fedvla join --shard`); it becomes the name's shard.
     shard: Option<usize>,
+    /// The volunteer trains on its own dataset (`fedvla join --dataset`): it is assigned no shard.
+    #[serde(default)]
+    own_dataset: bool,
 }
 
 /// The setup of a volunteer (`?name=` keeps a returning one on its shard).
@@ -76,8 +81,10 @@ async fn get_setup(
     Query(query): Query<SetupQuery>,
 ) -> Result<Json<VolunteerSetup>, ServerError> {
     let v = &state.volunteers;
-    let (binding, changed) =
-        v.assign(query.name.as_deref(), query.shard).map_err(|e| ServerError::BadRequest(e.to_string()))?;
+    let (binding, changed) = match query.own_dataset {
+        true => (None, false),
+        false => v.assign(query.name.as_deref(), query.shard).map_err(|e| ServerError::BadRequest(e.to_string()))?,
+    };
     if changed {
         persist(v).await?;
     }
@@ -96,7 +103,17 @@ async fn get_setup(
         rollout_task_tokens: offer.rollout_task_tokens.clone(),
         rollout_task_mask: offer.rollout_task_mask.clone(),
         model_version: state.model.borrow().version,
+        tokenizer_url: offer.tokenizer.as_ref().map(|_| routes::TOKENIZER.to_owned()),
+        dataset_signature: offer.signature.clone(),
     }))
+}
+
+/// The run's `tokenizer.json`.
+async fn get_tokenizer(_: RunToken, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+    let bytes = state.volunteers.offer().tokenizer.clone().ok_or_else(|| {
+        ServerError::NotFound("this run has no tokenizer to serve (its workload tokenizes nothing)".into())
+    })?;
+    Ok(([(CONTENT_TYPE, "application/json")], bytes).into_response())
 }
 
 /// Writes the registry off the async runtime.
@@ -236,7 +253,7 @@ async fn post_video(
     let stored = {
         let (dir, path) = (dir.clone(), path.clone());
         tokio::task::spawn_blocking(move || {
-            std::fs::create_dir_all(&dir).and_then(|()| fedvla_fs::write_atomic(&path, &video))
+            fedvla_fs::create_dir_all(&dir).and_then(|()| fedvla_fs::write_atomic(&path, &video))
         })
     };
     match stored.await {

@@ -1,11 +1,13 @@
 //! `fedvla join URL`: a native volunteer. It downloads what the server offers (`GET /api/volunteer`: its shard,
 //! the policy configuration and the frozen weights), then runs the shared round loop
-//! (`fedvla_server::native_client::volunteer`).
+//! (`fedvla_server::native_client::volunteer`). With `--dataset PATH` it trains on a LeRobot dataset of its own
+//! instead of a shard: the dataset stays on this machine; only updates, metrics and the dataset's signature,
+//! size and moments go to the server.
 
 use std::path::PathBuf;
 
 use fedvla_federation::{ClientError, ClientEvent, ErrorCode};
-use fedvla_server::native_client;
+use fedvla_server::native_client::{self, Volunteer, VolunteerData};
 use tracing_subscriber::filter::LevelFilter;
 
 #[derive(clap::Args)]
@@ -20,8 +22,12 @@ pub struct Args {
     #[arg(long)]
     name: Option<String>,
     /// Train on this shard instead of the one the server assigns.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "dataset")]
     shard: Option<u32>,
+    /// Train on this LeRobot dataset (v3.0 or v2.1) of your own instead of a server shard; it never leaves this
+    /// machine. The server refuses one that does not fit its run, naming what differs.
+    #[arg(long)]
+    dataset: Option<PathBuf>,
     /// Token required by a server started with auth-token set.
     #[arg(long)]
     auth_token: Option<String>,
@@ -30,23 +36,27 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     super::support::init_tracing(None, LevelFilter::INFO);
     let name = args.name.unwrap_or_else(|| format!("native-{}", &fedvla_aggregator::sessions::random_token()[..6]));
-    let result = super::support::runtime()?.block_on(native_client::volunteer(
-        &args.url,
-        args.ca_cert.as_deref(),
-        &name,
-        args.shard,
-        args.auth_token,
-        None,
-        |event| match event {
-            ClientEvent::Trained { round, examples, train_loss } => {
-                tracing::info!(round, examples, train_loss, "trained");
-            }
-            ClientEvent::Refused { code, message } => {
-                tracing::warn!(code = code.as_str(), %message, "refused");
-            }
-            other => tracing::info!(?other),
-        },
-    ));
+    let data = match &args.dataset {
+        Some(path) => VolunteerData::Own(path),
+        None => VolunteerData::Shard(args.shard),
+    };
+    let volunteer = Volunteer {
+        server: &args.url,
+        ca_cert: args.ca_cert.as_deref(),
+        name: &name,
+        data,
+        auth_token: args.auth_token,
+        attack: None,
+    };
+    let result = super::support::runtime()?.block_on(native_client::volunteer(volunteer, |event| match event {
+        ClientEvent::Trained { round, examples, train_loss } => {
+            tracing::info!(round, examples, train_loss, "trained");
+        }
+        ClientEvent::Refused { code, message } => {
+            tracing::warn!(code = code.as_str(), %message, "refused");
+        }
+        other => tracing::info!(?other),
+    }));
     let summary = match result {
         Err(e) if matches!(e.downcast_ref(), Some(ClientError::Refused { code: ErrorCode::ShuttingDown, .. })) => {
             tracing::info!("the server shut down before the run finished");

@@ -155,7 +155,8 @@ pub fn spawn_trainer(
     let url = format!("ws://{}", handle.addr());
     tokio::spawn(async move {
         let mut transport = NativeTransport::connect(&url).await.expect("connect");
-        let options = ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32) };
+        let options =
+            ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32), data: None };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await
     })
 }
@@ -288,6 +289,7 @@ pub fn join_message(name: &str, protocol_version: u16) -> ClientMessage {
         name: name.into(),
         capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
         shard: None,
+        data: None,
     }
 }
 

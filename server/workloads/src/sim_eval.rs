@@ -166,6 +166,10 @@ impl LocalTrainer for FilmedRollouts {
         self.0.set_correction(correction)
     }
 
+    fn set_norm_stats(&mut self, stats: &fedvla_federation::NormalizationStats) -> Result<(), BoxError> {
+        self.0.set_norm_stats(stats)
+    }
+
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         self.0.train(task).await
     }

@@ -6,6 +6,7 @@
 use std::future::Future;
 
 use crate::codec::{encode_delta_payload, encode_frames, encode_payload};
+use crate::data_report::{DataReport, NormalizationStats};
 use crate::error::{BoxError, TensorError};
 use crate::protocol::{
     Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
@@ -62,6 +63,13 @@ pub trait LocalTrainer {
         }
     }
 
+    /// Normalises state and action with `stats` from now on (the run's, which the server sends before the first
+    /// task). Trainers whose data needs no normalisation ignore them.
+    fn set_norm_stats(&mut self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        let _ = stats;
+        Ok(())
+    }
+
     /// Runs `task.local_steps` steps at `task.batch_size` and `task.lr` from the tensors last set.
     fn train(&mut self, task: &RoundTask) -> impl Future<Output = Result<TrainOutput, BoxError>>;
 
@@ -109,6 +117,8 @@ pub struct ClientOptions {
     pub auth_token: Option<String>,
     /// The shard this client trains on, announced on join (the server weighs its updates by that shard).
     pub shard: Option<u32>,
+    /// What the client tells the server of its data on join (see [`DataReport`]).
+    pub data: Option<DataReport>,
 }
 
 /// Progress notifications, for progress bars and logs.
@@ -192,6 +202,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
         name: options.name.clone(),
         capabilities: trainer.capabilities(),
         shard: options.shard,
+        data: options.data.clone(),
     })
     .await?;
     let (client_id, max_frame_bytes, session) = match link.recv().await? {
@@ -298,6 +309,9 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 };
                 link.send(&ClientMessage::Metrics(metrics)).await?;
                 summary.rounds_trained += 1;
+            }
+            ServerMessage::NormStats(stats) => {
+                trainer.set_norm_stats(&stats).map_err(ClientError::Trainer)?;
             }
             ServerMessage::RoundClosed { round, accepted, .. } => {
                 on_event(ClientEvent::RoundClosed { round, accepted });

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::data_report::NormalizationStats;
 use crate::error::BoxError;
 use crate::tensors::NamedTensors;
 
@@ -27,4 +28,11 @@ impl EvalMetrics {
 /// Evaluates global trainable tensors on held-out data (the SmolVLA held-out evaluation implements this).
 pub trait Evaluator {
     fn evaluate(&mut self, global: &NamedTensors) -> Result<EvalMetrics, BoxError>;
+
+    /// Normalises with `stats` from now on (the run's, once agreed by federated statistics). Evaluators of data
+    /// that needs no normalisation ignore them.
+    fn set_norm_stats(&mut self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        let _ = stats;
+        Ok(())
+    }
 }

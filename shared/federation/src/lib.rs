@@ -6,6 +6,7 @@
 pub mod accountant;
 pub mod client;
 pub mod codec;
+pub mod data_report;
 pub mod error;
 pub mod evaluate;
 pub mod protocol;
@@ -20,6 +21,9 @@ pub use client::{
     TrainOutput, Video, run_client,
 };
 pub use codec::{Reassembler, UpdateLimits, UpdateValues};
+pub use data_report::{
+    DataReport, DatasetSignature, FeatureMoments, FeatureSummary, NormalizationStats, OwnDataset, StatsSource,
+};
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator};
 pub use protocol::{

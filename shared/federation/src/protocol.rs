@@ -2,12 +2,16 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::data_report::{DataReport, DatasetSignature, NormalizationStats};
+
 /// Bumped on any incompatible change to the control messages or the binary update format.
 /// 2: volunteer setup, sessions for uploads, rollout requests and results.
 /// 3: the join names the shard the client trains on; the server weighs updates by that shard, not by the claim;
 /// the setup's workload is a [`WorkloadKind`].
 /// 4: the task names the update's encoding; the payload starts with it (compressed deltas, see [`UpdateEncoding`]).
-pub const PROTOCOL_VERSION: u16 = 4;
+/// 5: the join reports the client's data ([`DataReport`]: an own dataset's signature, moments for federated
+/// statistics); the server sends the run's normalisation statistics ([`ServerMessage::NormStats`]).
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// Longest volunteer name, in bytes, the server accepts (on join and in `GET /api/volunteer?name=`).
 pub const MAX_NAME_BYTES: usize = 64;
@@ -26,6 +30,8 @@ pub mod routes {
     pub const FROZEN: &str = "/policy/frozen/{tag}";
     pub const ROLLOUT_VIDEO: &str = "/rollout/{round}/{file}";
     pub const CORRECTION: &str = "/scaffold/{round}";
+    /// The run's tokenizer (`tokenizer.json`), for volunteers that tokenize their own dataset's tasks.
+    pub const TOKENIZER: &str = "/api/tokenizer";
 
     /// The global trainable tensors of `version` (safetensors).
     pub fn model(version: u64) -> String {
@@ -106,6 +112,10 @@ pub enum ClientMessage {
         /// name. Updates are weighted by this shard's training examples, whatever their header claims.
         #[serde(default)]
         shard: Option<u32>,
+        /// The client's data: its own dataset's signature and claimed size when it brings one (the server checks
+        /// it fits the run), and the moments of its state and action (for federated statistics).
+        #[serde(default)]
+        data: Option<DataReport>,
     },
     /// Keep-alive for idle connections (e.g. behind proxies); the server only notes it.
     Heartbeat,
@@ -297,7 +307,8 @@ pub struct LrSchedule {
 pub struct VolunteerSetup {
     pub protocol_version: u16,
     pub workload: WorkloadKind,
-    /// The shard this volunteer should train on (assigned round-robin), of `shard_count`.
+    /// The shard this volunteer should train on (assigned round-robin), of `shard_count` (0, and unused, for a
+    /// volunteer that brings its own dataset).
     pub shard_index: u32,
     pub shard_count: u32,
     /// `GET` paths of the shard and its manifest (size and SHA-256).
@@ -314,6 +325,12 @@ pub struct VolunteerSetup {
     pub rollout_task_mask: Vec<bool>,
     /// The global model version at the time of the request.
     pub model_version: u64,
+    /// `GET` path of the run's tokenizer, for volunteers that bring their own dataset.
+    #[serde(default)]
+    pub tokenizer_url: Option<String>,
+    /// What an own dataset must match (the server checks it again on join); `None`: the run takes none.
+    #[serde(default)]
+    pub dataset_signature: Option<DatasetSignature>,
 }
 
 /// Why the server refused something.
@@ -361,6 +378,9 @@ pub enum ErrorCode {
     /// An update left out of the aggregate because its change from the global model is far beyond the norms seen
     /// (`update-norm-factor`).
     UpdateNormOutlier,
+    /// A join with an own dataset that does not fit the run (state or action dimensions or names, cameras, fps,
+    /// robot type), or one the run's workload cannot take.
+    IncompatibleDataset,
 }
 
 impl ErrorCode {
@@ -373,6 +393,7 @@ impl ErrorCode {
                 | Self::ShuttingDown
                 | Self::InvalidName
                 | Self::UnknownShard
+                | Self::IncompatibleDataset
                 | Self::JoinRateLimited
                 | Self::MessageRateLimited
         )
@@ -405,6 +426,7 @@ impl ErrorCode {
             Self::UnknownShard => "unknown_shard",
             Self::DroppedUpdate => "dropped_update",
             Self::UpdateNormOutlier => "update_norm_outlier",
+            Self::IncompatibleDataset => "incompatible_dataset",
         }
     }
 }
@@ -422,6 +444,9 @@ pub enum ServerMessage {
         session: String,
     },
     RoundTask(RoundTask),
+    /// The statistics the client normalises state and action with, sent before its first task (once agreed,
+    /// when the run agrees them by federated statistics).
+    NormStats(NormalizationStats),
     Error {
         code: ErrorCode,
         message: String,
@@ -485,6 +510,7 @@ mod tests {
             name: "c0".into(),
             capabilities: Capabilities { backend: "ndarray".into(), memory_bytes: 1 << 30 },
             shard: Some(2),
+            data: None,
         };
         let json = serde_json::to_string(&join).unwrap();
         assert!(json.starts_with(&format!(r#"{{"type":"join","protocol_version":{PROTOCOL_VERSION}"#)), "{json}");
@@ -506,6 +532,7 @@ mod tests {
             ErrorCode::MalformedFrame,
             ErrorCode::DroppedUpdate,
             ErrorCode::UpdateNormOutlier,
+            ErrorCode::IncompatibleDataset,
         ] {
             assert_eq!(serde_json::to_string(&code).unwrap(), format!("\"{}\"", code.as_str()));
         }

@@ -9,7 +9,10 @@ use fedvla_federation::codec::{
     encode_update,
 };
 use fedvla_federation::protocol::RolloutEpisode;
-use fedvla_federation::{Capabilities, ClientMessage, NamedTensors, ServerMessage, TensorSpec, UpdateEncoding};
+use fedvla_federation::{
+    Capabilities, ClientMessage, DataReport, DatasetSignature, FeatureMoments, NamedTensors, OwnDataset, ServerMessage,
+    TensorSpec, UpdateEncoding,
+};
 
 /// SplitMix64: a seeded stream of cases, the same on every run.
 struct Cases(u64);
@@ -162,6 +165,21 @@ fn protocol_messages_never_panic() {
             name: "ada".into(),
             capabilities: Capabilities { backend: "webgpu".into(), memory_bytes: 1 << 30 },
             shard: Some(1),
+            data: Some(DataReport {
+                own: Some(OwnDataset {
+                    signature: DatasetSignature {
+                        robot_type: Some("so100".into()),
+                        fps: 30,
+                        state_dim: 2,
+                        state_names: vec!["a".into(), "b".into()],
+                        action_dim: 2,
+                        action_names: vec!["a".into(), "b".into()],
+                        cameras: vec!["observation.images.top".into()],
+                    },
+                    train_examples: 40,
+                }),
+                moments: [("action".to_owned(), FeatureMoments::of_rows(2, [[0.5f32, -1.0].as_slice()]))].into(),
+            }),
         },
         ClientMessage::Heartbeat,
         ClientMessage::UpdateHeader { round: 4, examples: 120, train_loss: 0.5, payload_bytes: 4096 },

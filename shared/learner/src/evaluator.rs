@@ -1,7 +1,7 @@
 //! The server's evaluation of each global model on the federation's own held-out episodes.
 
 use burn::tensor::Device;
-use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors};
+use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors, NormalizationStats};
 use fedvla_policy::weights::ParamStore;
 use fedvla_policy::{SmolVla, SmolVlaConfig, WeightMap};
 
@@ -42,5 +42,9 @@ impl Evaluator for HeldOutEvaluator {
             action_mse: Some(m.action_mse),
             action_l1: Some(m.action_l1),
         })
+    }
+
+    fn set_norm_stats(&mut self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        Ok(self.examples.set_norm_stats(stats)?)
     }
 }

@@ -2,7 +2,10 @@
 //! normalised with the dataset statistics the shard carries, LeRobot's `action_is_pad`, and the
 //! task's token ids.
 
-use fedvla_data::ClientShard;
+use fedvla_data::{ClientShard, DatasetInfo};
+use fedvla_federation::data_report::{
+    DataReport, DatasetSignature, FeatureMoments, NORMALISED_FEATURES, NormalizationStats, OwnDataset,
+};
 use fedvla_policy::batch::rgb_hwc_to_chw;
 use fedvla_policy::weights::HostTensor;
 use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig};
@@ -39,6 +42,46 @@ pub fn shard_stats(shard: &ClientShard) -> Result<NormStats, PolicyError> {
     Ok(stats)
 }
 
+/// What a dataset must share with a run's for a policy to read both alike, from its `meta/info.json`: robot
+/// type, fps, state and action dimensions and names, and cameras (video features) in order.
+pub fn dataset_signature(info: &DatasetInfo) -> DatasetSignature {
+    let vector = |key: &str| {
+        let Some(feature) = info.features.get(key) else { return (0, Vec::new()) };
+        // Names are a list, or in older datasets a map such as {"motors": [...]}, or null.
+        let list = match &feature.names {
+            serde_json::Value::Object(map) => map.values().next().cloned().unwrap_or_default(),
+            other => other.clone(),
+        };
+        let names = list.as_array().map(|a| a.iter().map(|n| n.as_str().unwrap_or_default().to_owned()).collect());
+        (feature.shape.iter().product(), names.unwrap_or_default())
+    };
+    let (state_dim, state_names) = vector(NORMALISED_FEATURES[0]);
+    let (action_dim, action_names) = vector(NORMALISED_FEATURES[1]);
+    DatasetSignature {
+        robot_type: info.robot_type.clone(),
+        fps: info.fps,
+        state_dim,
+        state_names,
+        action_dim,
+        action_names,
+        cameras: info.features.video_keys(),
+    }
+}
+
+/// The policy's view of the run's statistics: mean and std of [`NORMALISED_FEATURES`].
+pub fn norm_stats(stats: &NormalizationStats) -> Result<NormStats, PolicyError> {
+    let mut out = NormStats::default();
+    for feature in NORMALISED_FEATURES {
+        let s = stats
+            .features
+            .get(feature)
+            .ok_or_else(|| PolicyError::Input(format!("the run's normalisation statistics lack {feature}")))?;
+        let to_f32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect();
+        out.features.insert(feature.into(), FeatureStats { mean: to_f32(&s.mean), std: to_f32(&s.std) });
+    }
+    Ok(out)
+}
+
 impl ShardExamples {
     pub fn new(shard: ClientShard, cfg: &SmolVlaConfig) -> Result<Self, PolicyError> {
         let cameras = cfg.camera_keys();
@@ -64,6 +107,33 @@ impl ShardExamples {
 
     pub fn stats(&self) -> &NormStats {
         &self.stats
+    }
+
+    /// Normalises with the run's statistics from now on instead of those the shard carries.
+    pub fn set_norm_stats(&mut self, stats: &NormalizationStats) -> Result<(), PolicyError> {
+        self.stats = norm_stats(stats)?;
+        Ok(())
+    }
+
+    /// What the client tells the server of this data on join: the moments of its state and action over every
+    /// row (its training and held-out episodes), and `own` when it is the client's own dataset.
+    pub fn data_report(&self, own: Option<OwnDataset>) -> DataReport {
+        let m = &self.shard.manifest;
+        let moments = [
+            (NORMALISED_FEATURES[0], &self.shard.state, m.state_dim),
+            (NORMALISED_FEATURES[1], &self.shard.action, m.action_dim),
+        ]
+        .into_iter()
+        .map(|(feature, values, dim)| {
+            (feature.to_owned(), FeatureMoments::of_rows(dim, values.chunks_exact(dim.max(1))))
+        })
+        .collect();
+        DataReport { own, moments }
+    }
+
+    /// The frames of its training episodes.
+    pub fn train_examples(&self) -> u64 {
+        self.train_rows.len() as u64
     }
 
     /// Data poisoning, for simulated attackers: every training row is labelled from then on with the action chunk

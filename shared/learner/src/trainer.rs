@@ -4,8 +4,8 @@
 
 use burn::tensor::Device;
 use fedvla_federation::{
-    BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, RolloutEpisode, RolloutOutput, RolloutRequest,
-    RoundTask, TrainOutput,
+    BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, NormalizationStats, RolloutEpisode, RolloutOutput,
+    RolloutRequest, RoundTask, TrainOutput,
 };
 use fedvla_policy::weights::ParamStore;
 use fedvla_policy::{SmolVla, SmolVlaConfig, Trainer, WeightMap};
@@ -72,6 +72,11 @@ impl SmolVlaTrainer {
     pub fn with_rollouts(mut self, tokens: TaskTokens) -> Self {
         self.rollout_tokens = Some(tokens);
         self
+    }
+
+    /// Its data (for [`fedvla_federation::ClientOptions::data`]).
+    pub fn examples(&self) -> &ShardExamples {
+        &self.examples
     }
 
     pub fn config(&self) -> &SmolVlaConfig {
@@ -145,6 +150,10 @@ impl LocalTrainer for SmolVlaTrainer {
     fn set_correction(&mut self, correction: &NamedTensors) -> Result<(), BoxError> {
         let weights = (!correction.is_empty()).then(|| to_weights(correction));
         Ok(self.trainer.set_correction(weights.as_ref())?)
+    }
+
+    fn set_norm_stats(&mut self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        Ok(self.examples.set_norm_stats(stats)?)
     }
 
     /// `local_steps` AdamW steps on batches drawn (seeded by the task) from the training rows,

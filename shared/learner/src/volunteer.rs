@@ -1,6 +1,7 @@
 //! A volunteer's start-up, the same natively and in the browser: fetch the setup (`GET /api/volunteer`), check it
 //! is a server this client can serve (protocol version, workload), download the frozen weights, the shard (checked
-//! against its manifest's size and SHA-256) and the global model, and build the trainer. Only the downloading
+//! against its manifest's size and SHA-256; or, for a volunteer with its own dataset, the run's tokenizer to pack
+//! that dataset with) and the global model, and build the trainer. Only the downloading
 //! differs, behind [`Fetch`]: natively a plain HTTP GET, in the browser a fetch with progress that keeps content
 //! under a content key in the Cache API.
 
@@ -11,8 +12,8 @@ use burn::tensor::Device;
 use fedvla_data::shard::verify_shard_bytes;
 use fedvla_data::{ClientShard, ShardFileManifest};
 use fedvla_federation::{BoxError, PROTOCOL_VERSION, VolunteerSetup, WorkloadKind, routes};
-use fedvla_policy::SmolVlaConfig;
 use fedvla_policy::weights::parse_safetensors;
+use fedvla_policy::{SmolVlaConfig, Tokenizer};
 
 use crate::examples::ShardExamples;
 use crate::trainer::SmolVlaTrainer;
@@ -27,9 +28,18 @@ pub trait Fetch {
 /// What the server offers volunteer `name`: a new name gets the next shard round-robin, a returning one its
 /// shard again; `shard` asks for that one (it becomes the name's). Refuses a server of another protocol version.
 pub async fn fetch_setup(fetch: &impl Fetch, name: &str, shard: Option<u32>) -> Result<VolunteerSetup, BoxError> {
-    let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
     let shard = shard.map(|s| format!("&shard={s}")).unwrap_or_default();
-    let bytes = fetch.get(&format!("{}?name={name}{shard}", routes::VOLUNTEER), "setup", None).await?;
+    setup_with(fetch, name, &shard).await
+}
+
+/// What the server offers volunteer `name`, which brings its own dataset: no shard is assigned to it.
+pub async fn fetch_own_data_setup(fetch: &impl Fetch, name: &str) -> Result<VolunteerSetup, BoxError> {
+    setup_with(fetch, name, "&own_dataset=true").await
+}
+
+async fn setup_with(fetch: &impl Fetch, name: &str, query: &str) -> Result<VolunteerSetup, BoxError> {
+    let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
+    let bytes = fetch.get(&format!("{}?name={name}{query}", routes::VOLUNTEER), "setup", None).await?;
     let setup: VolunteerSetup =
         serde_json::from_slice(&bytes).map_err(|e| format!("GET {}: {e}", routes::VOLUNTEER))?;
     if setup.protocol_version != PROTOCOL_VERSION {
@@ -69,6 +79,13 @@ pub fn volunteer_seed(name: &str) -> u64 {
     fedvla_federation::fnv1a(name)
 }
 
+/// The run's tokenizer, for a volunteer that tokenizes its own dataset's tasks.
+pub async fn fetch_tokenizer(fetch: &impl Fetch, setup: &VolunteerSetup) -> Result<Tokenizer, BoxError> {
+    let url = setup.tokenizer_url.as_deref().ok_or("the server offers no tokenizer: it takes no own datasets")?;
+    let bytes = fetch.get(url, "tokenizer", None).await?;
+    Ok(Tokenizer::from_json_bytes(&bytes, Path::new(url))?)
+}
+
 /// The SmolVLA volunteer `name` of `setup`, on `device` (autodiff enabled), able to roll out the sim task:
 /// downloads the frozen weights, its shard and the global model the setup names.
 pub async fn smolvla_volunteer(
@@ -78,19 +95,39 @@ pub async fn smolvla_volunteer(
     device: &Device,
     backend: &str,
 ) -> Result<SmolVlaTrainer, BoxError> {
-    if setup.workload != WorkloadKind::Smolvla {
-        return Err(format!("the server runs the {:?} workload, not SmolVLA", setup.workload).into());
+    check_smolvla(setup)?;
+    let (manifest, shard) = fetch_shard(fetch, &setup.shard_url, &setup.shard_manifest_url).await?;
+    let shard = ClientShard::from_bytes(Path::new(&manifest.file), &shard)?;
+    smolvla_volunteer_on(fetch, setup, name, shard, device, backend).await
+}
+
+fn check_smolvla(setup: &VolunteerSetup) -> Result<(), BoxError> {
+    match setup.workload {
+        WorkloadKind::Smolvla => Ok(()),
+        other => Err(format!("the server runs the {other:?} workload, not SmolVLA").into()),
     }
+}
+
+/// [`smolvla_volunteer`] on `shard`, one the volunteer already holds (packed from its own dataset): downloads the
+/// frozen weights and the global model.
+pub async fn smolvla_volunteer_on(
+    fetch: &impl Fetch,
+    setup: &VolunteerSetup,
+    name: &str,
+    shard: ClientShard,
+    device: &Device,
+    backend: &str,
+) -> Result<SmolVlaTrainer, BoxError> {
+    check_smolvla(setup)?;
     let cfg = policy_config(setup)?;
     let frozen_url = setup.frozen_url.as_deref().ok_or("the server offers no frozen weights")?;
     let frozen = fetch.get(frozen_url, "frozen weights", Some(frozen_url)).await?;
-    let (manifest, shard) = fetch_shard(fetch, &setup.shard_url, &setup.shard_manifest_url).await?;
     // Never cached: versions are numbered per run, so a kept version 3 could be another run's.
     let global = fetch.get(&routes::model(setup.model_version), "global model", None).await?;
 
     let mut weights = parse_safetensors(&frozen, Path::new("frozen weights"))?;
     weights.extend(parse_safetensors(&global, Path::new("global model"))?);
-    let examples = ShardExamples::new(ClientShard::from_bytes(Path::new(&manifest.file), &shard)?, &cfg)?;
+    let examples = ShardExamples::new(shard, &cfg)?;
     let tokens = (
         setup.rollout_task_tokens.iter().map(|&i| i64::from(i)).collect(),
         setup.rollout_task_mask.clone(),

@@ -119,9 +119,14 @@ impl WordTokenizer {
 
     /// Reads a WordLevel `tokenizer.json` written by [`WordTokenizer::to_json`].
     pub fn read(path: &Path) -> Result<Self, PolicyError> {
-        let text = std::fs::read_to_string(path).map_err(|e| PolicyError::io(path, e))?;
+        let bytes = std::fs::read(path).map_err(|e| PolicyError::io(path, e))?;
+        Self::from_json_bytes(&bytes, path)
+    }
+
+    /// [`WordTokenizer::read`] of the file's bytes; `path` names them in errors.
+    pub fn from_json_bytes(bytes: &[u8], path: &Path) -> Result<Self, PolicyError> {
         let json: Value =
-            serde_json::from_str(&text).map_err(|e| PolicyError::Json { path: path.into(), source: e })?;
+            serde_json::from_slice(bytes).map_err(|e| PolicyError::Json { path: path.into(), source: e })?;
         let model = &json["model"];
         if model["type"] != "WordLevel" {
             return Err(PolicyError::Tokenizer(format!(
@@ -165,10 +170,16 @@ impl Tokenizer {
     /// Reads a `tokenizer.json`: WordLevel ones natively in this crate, anything else (SmolVLM2's
     /// BPE) through the `tokenizers` crate.
     pub fn read(path: &Path) -> Result<Self, PolicyError> {
-        match WordTokenizer::read(path) {
+        let bytes = std::fs::read(path).map_err(|e| PolicyError::io(path, e))?;
+        Self::from_json_bytes(&bytes, path)
+    }
+
+    /// [`Tokenizer::read`] of a `tokenizer.json`'s bytes (a volunteer's download); `path` names them in errors.
+    pub fn from_json_bytes(bytes: &[u8], path: &Path) -> Result<Self, PolicyError> {
+        match WordTokenizer::from_json_bytes(bytes, path) {
             Ok(word) => Ok(Self::Word(word)),
             #[cfg(not(target_arch = "wasm32"))]
-            Err(PolicyError::Tokenizer(_)) => tokenizers::Tokenizer::from_file(path)
+            Err(PolicyError::Tokenizer(_)) => tokenizers::Tokenizer::from_bytes(bytes)
                 .map(|t| Self::HuggingFace(Box::new(t)))
                 .map_err(|e| PolicyError::Tokenizer(format!("{}: {e}", path.display()))),
             Err(e) => Err(e),

@@ -8,6 +8,10 @@
 //! client is done or the deadline passes ([`round`]); aggregate, evaluate and persist ([`close`]); next round. A
 //! round with fewer than `min-fit` updates is retried with a fresh sample. Stopped by the operator, the run ends
 //! after the current round.
+//!
+//! Normalisation: every client gets the run's statistics on join. A run with `federated-stats` agrees them
+//! before its first round from the moments its connected clients reported on join ([`Running::agree_stats`]),
+//! so no client's data is pooled; round 0 (the initial model) is evaluated with the dataset's.
 
 mod close;
 mod round;
@@ -17,7 +21,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Instant;
 
-use fedvla_federation::{ErrorCode, ServerMessage};
+use fedvla_federation::{DataReport, ErrorCode, NormalizationStats, ServerMessage, StatsSource};
 use serde_json::json;
 
 pub use self::state::{Coordinator, CoordinatorError, Event, PublishedModel, RunStatus, UpdateReceived};
@@ -50,6 +54,10 @@ impl Coordinator {
 
 impl Running {
     async fn run(&mut self) -> Result<RunStatus, CoordinatorError> {
+        // A resumed run goes on with the statistics it agreed.
+        if let Some(stats) = self.c.norm_stats.clone().filter(|s| s.source == StatsSource::Federated) {
+            self.adopt_stats(&stats)?;
+        }
         let first = match self.c.completed {
             Some(round) => {
                 tracing::info!(round, "resuming after the last completed round");
@@ -98,6 +106,9 @@ impl Running {
                 let (run_dir, config) = (self.c.run_dir.clone(), self.c.config.clone());
                 blocking(move || run_dir.write_config(&config)).await?;
                 new_settings.merge(changed);
+            }
+            if self.c.config.federated_stats && self.c.norm_stats.is_none() {
+                self.agree_stats(round).await?;
             }
             let started = Instant::now();
             let state = self.start_round(round, attempt);
@@ -184,6 +195,37 @@ impl Running {
                 }
             }
         }
+    }
+
+    /// Federated statistics: combines the moments of the connected clients' data exactly into the run's
+    /// normalisation statistics, records them and sends them to every client, the evaluator and the exporters.
+    /// Clients that reported no moments are left out; with none at all the run keeps the dataset's.
+    async fn agree_stats(&mut self, round: u64) -> Result<(), CoordinatorError> {
+        let reports: Vec<&DataReport> = self.clients.values().filter_map(|c| c.report.as_ref()).collect();
+        let stats = match NormalizationStats::combine(&reports) {
+            Ok(stats) => stats,
+            Err(reason) => {
+                tracing::warn!(round, %reason, "no federated statistics: the run keeps its dataset's");
+                self.c.norm_stats = self.c.dataset_stats.clone();
+                return Ok(());
+            }
+        };
+        tracing::info!(round, clients = stats.clients, "normalisation statistics agreed by federated statistics");
+        let (run_dir, record) = (self.c.run_dir.clone(), stats.clone());
+        blocking(move || run_dir.write_norm_stats(&record)).await?;
+        self.adopt_stats(&stats)?;
+        self.broadcast(ServerMessage::NormStats(stats.clone()));
+        self.c.norm_stats = Some(stats);
+        Ok(())
+    }
+
+    /// Hands `stats` to the evaluator and the exporters.
+    fn adopt_stats(&self, stats: &NormalizationStats) -> Result<(), CoordinatorError> {
+        self.c.evaluator.lock().expect("evaluator lock").set_norm_stats(stats).map_err(CoordinatorError::Evaluate)?;
+        for exporter in self.c.exporters.iter() {
+            exporter.set_norm_stats(stats).map_err(CoordinatorError::Evaluate)?;
+        }
+        Ok(())
     }
 
     async fn next_event(&mut self) -> Result<Event, CoordinatorError> {

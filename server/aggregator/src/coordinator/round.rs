@@ -12,7 +12,7 @@ use rand::rngs::StdRng;
 
 use super::state::{ClientEntry, CoordinatorError, Event, Running, UpdateReceived};
 use crate::events::{ClientState, RunEvent};
-use crate::records::{ClientRecord, RolloutResults};
+use crate::records::{ClientRecord, DataSource, RolloutResults};
 
 /// First seed of the layouts clients roll out (far from the seeds datasets are recorded on); each shard has its
 /// own block of them, the same every round, so success rates compare from round to round.
@@ -22,11 +22,13 @@ const CLIENT_ROLLOUT_SEEDS_PER_SHARD: u64 = 1_000;
 #[derive(Default)]
 pub(super) struct Participant {
     name: String,
+    data: Option<DataSource>,
     /// The accepted update (its values moved into `model`).
     update: Option<AcceptedUpdate>,
     /// The client's trained tensors, until the round takes them.
     model: Option<NamedTensors>,
-    /// What the update weighs: the client's shard's training examples (1 each where no shard is known).
+    /// What the update weighs: the client's shard's training examples, or its own data's within the cap (1 each
+    /// where neither is known).
     examples: u64,
     /// Who the client is from round to round, for the strategies that keep state per client: its shard, or its
     /// name's hash where it has none.
@@ -113,6 +115,7 @@ impl RoundState {
             .map(|(&client_id, p)| ClientRecord {
                 client_id,
                 name: p.name.clone(),
+                data: p.data,
                 accepted: p.update.is_some() && p.dropped.is_none(),
                 examples: p.update.as_ref().map(|_| p.examples),
                 claimed_examples: p.update.as_ref().map(|u| u.claimed_examples),
@@ -150,9 +153,13 @@ impl Running {
             let (name, client_id) = pool[i];
             let client = &self.clients[&client_id];
             let evaluates = round.is_multiple_of(cfg.eval_every);
-            let key = client.shard.map_or(fnv1a(name), |s| s.index as u64);
+            let shard = match client.data {
+                Some(DataSource::Shard { index, .. }) => Some(index as u64),
+                _ => None,
+            };
+            let key = shard.unwrap_or_else(|| fnv1a(name));
             // A shard's own layouts: a volunteer without one gets a block by its name.
-            let block = client.shard.map_or(key % 1_000, |s| s.index as u64);
+            let block = shard.unwrap_or(key % 1_000);
             let strategy = self.c.strategy.lock().expect("strategy lock");
             match strategy.client_correction(key).map(|c| c.to_safetensors()) {
                 Some(Ok(bytes)) => self.c.sessions.offer_correction(client_id, round, bytes.into()),
@@ -191,11 +198,18 @@ impl Running {
                 self.c.sessions.allow_uploads(client_id, round, request.episodes);
             }
             // Weighed by what the server knows the client holds, never by what its update claims.
-            let examples = client.shard.map_or(1, |s| s.train_examples);
+            let examples = client.data.map_or(1, DataSource::weight);
             let lr_sum = task.lr_sum();
             client.outbox.send(ServerMessage::RoundTask(task)).ok();
             self.observe(RunEvent::ClientState { id: client_id, state: first_step });
-            let participant = Participant { name: name.to_owned(), examples, key, lr_sum, ..Participant::default() };
+            let participant = Participant {
+                name: name.to_owned(),
+                data: client.data,
+                examples,
+                key,
+                lr_sum,
+                ..Participant::default()
+            };
             participants.insert(client_id, participant);
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
@@ -238,14 +252,18 @@ impl Running {
         // Each event concerns at most one participant, so the map is taken once.
         let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
         match event {
-            Event::Joined { client_id, name, capabilities, shard, outbox } => {
-                tracing::debug!(client_id, ?capabilities, "registered");
+            Event::Joined { client_id, name, capabilities, data, report, outbox } => {
+                tracing::debug!(client_id, ?capabilities, ?data, "registered");
                 self.observe(RunEvent::ClientJoined {
                     id: client_id,
                     name: name.clone(),
                     backend: capabilities.backend,
+                    data,
                 });
-                self.clients.insert(client_id, ClientEntry { name, shard, outbox });
+                if let Some(stats) = &self.c.norm_stats {
+                    outbox.send(ServerMessage::NormStats(stats.clone())).ok();
+                }
+                self.clients.insert(client_id, ClientEntry { name, data, report, outbox });
             }
             Event::Left { client_id } => {
                 self.clients.remove(&client_id);
@@ -269,13 +287,13 @@ impl Running {
                             return;
                         }
                     };
-                    let known = self.clients.get(&client_id).and_then(|c| c.shard);
-                    if known.is_some_and(|s| s.train_examples != claimed_examples) {
+                    let known = self.clients.get(&client_id).and_then(|c| c.data);
+                    if known.is_some_and(|d| d.expected_claim() != claimed_examples) {
                         tracing::info!(
                             client_id,
                             claimed = claimed_examples,
                             weight = p.examples,
-                            "update claims another example count than its shard holds: weighed by the shard"
+                            "update claims another example count than the client's data holds: weighed by that"
                         );
                         self.c.status_tx.send_modify(|s| s.corrected_claims += 1);
                     }

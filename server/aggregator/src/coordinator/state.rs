@@ -7,8 +7,8 @@ use std::sync::{Arc, Mutex};
 
 use bytes::Bytes;
 use fedvla_federation::{
-    BoxError, Capabilities, ErrorCode, Evaluator, NamedTensors, RolloutEpisode, RoundMetrics, ServerMessage, Strategy,
-    UpdateValues,
+    BoxError, Capabilities, DataReport, ErrorCode, Evaluator, NamedTensors, NormalizationStats, RolloutEpisode,
+    RoundMetrics, ServerMessage, Strategy, UpdateValues,
 };
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -16,7 +16,7 @@ use tokio_util::sync::CancellationToken;
 use crate::config::RunConfig;
 use crate::control::Controls;
 use crate::events::RunObserver;
-use crate::registry::ShardBinding;
+use crate::records::DataSource;
 use crate::run_dir::{ModelExporter, RunDir, RunDirError};
 use crate::sessions::Sessions;
 
@@ -27,8 +27,10 @@ pub enum Event {
         client_id: u64,
         name: String,
         capabilities: Capabilities,
-        /// The shard the client trains on; `None` when the workload offers none (its updates weigh equally).
-        shard: Option<ShardBinding>,
+        /// What the client trains on; `None` when the workload offers no shards (its updates weigh equally).
+        data: Option<DataSource>,
+        /// What it told of its data on join (moments for federated statistics).
+        report: Option<DataReport>,
         outbox: mpsc::UnboundedSender<ServerMessage>,
     },
     Left {
@@ -155,11 +157,17 @@ pub struct Coordinator {
     pub observer: Arc<dyn RunObserver>,
     /// Upload rights of the clients asked for rollout videos.
     pub sessions: Sessions,
+    /// The statistics every client, the evaluator and the exporters normalise with: the dataset's, or those the
+    /// run agreed by federated statistics (`None` until then).
+    pub norm_stats: Option<NormalizationStats>,
+    /// The dataset's statistics (`None` for a workload without any).
+    pub dataset_stats: Option<NormalizationStats>,
 }
 
 pub(super) struct ClientEntry {
     pub(super) name: String,
-    pub(super) shard: Option<ShardBinding>,
+    pub(super) data: Option<DataSource>,
+    pub(super) report: Option<DataReport>,
     pub(super) outbox: mpsc::UnboundedSender<ServerMessage>,
 }
 

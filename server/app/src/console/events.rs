@@ -3,7 +3,7 @@
 
 use fedvla_aggregator::control::{ControlAction, RunState, Settings};
 use fedvla_aggregator::events::ClientState;
-use fedvla_aggregator::records::MetricsLine;
+use fedvla_aggregator::records::{DataSource, MetricsLine};
 use serde::Serialize;
 
 #[derive(Debug, Clone, Serialize)]
@@ -55,6 +55,8 @@ pub struct ClientRow {
     pub id: u64,
     pub name: String,
     pub backend: String,
+    /// What it trains on: a server shard (examples the server counted) or its own dataset (examples claimed).
+    pub data: Option<DataSource>,
     pub state: ClientState,
     /// Unix milliseconds of the client's last message the coordinator saw.
     pub last_seen_ms: u64,

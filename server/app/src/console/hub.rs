@@ -182,11 +182,12 @@ impl ConsoleHub {
 impl RunObserver for ConsoleHub {
     fn observe(&self, event: RunEvent) {
         match event {
-            RunEvent::ClientJoined { id, name, backend } => {
+            RunEvent::ClientJoined { id, name, backend, data } => {
                 let row = ClientRow {
                     id,
                     name,
                     backend,
+                    data,
                     state: ClientState::Idle,
                     last_seen_ms: unix_ms(),
                     updates_accepted: 0,

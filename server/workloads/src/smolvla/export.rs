@@ -2,10 +2,11 @@
 //! and filmed in the sim.
 
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 
 use burn::tensor::Device;
-use fedvla_federation::{BoxError, NamedTensors};
+use fedvla_federation::{BoxError, NamedTensors, NormalizationStats};
+use fedvla_learner::examples::norm_stats;
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::tensors::to_weights;
 use fedvla_policy::policy_dir::export;
@@ -24,7 +25,8 @@ use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim
 pub(super) struct SimRollouts {
     pub(super) cfg: SmolVlaConfig,
     pub(super) frozen: Arc<WeightMap>,
-    pub(super) stats: NormStats,
+    /// The dataset's, until the run agrees others by federated statistics.
+    pub(super) stats: RwLock<NormStats>,
     pub(super) tokenizer: Tokenizer,
 }
 
@@ -43,7 +45,8 @@ impl ModelExporter for SimRollouts {
         }
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
-        let policy = SimPolicy::new(&self.cfg, &weights, self.stats.clone(), &self.tokenizer, &Device::flex())?;
+        let stats = self.stats.read().expect("statistics lock").clone();
+        let policy = SimPolicy::new(&self.cfg, &weights, stats, &self.tokenizer, &Device::flex())?;
         let source = format!("global model of round {round}");
         let options = SimEvalOptions {
             episodes: config.rollout_episodes,
@@ -66,13 +69,19 @@ impl ModelExporter for SimRollouts {
         );
         Ok(summary.figures())
     }
+
+    fn set_norm_stats(&self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        *self.stats.write().expect("statistics lock") = norm_stats(stats)?;
+        Ok(())
+    }
 }
 
 /// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
 pub(super) struct LeRobotExport {
     pub(super) cfg: SmolVlaConfig,
     pub(super) frozen: Arc<WeightMap>,
-    pub(super) stats: NormStats,
+    /// The dataset's, until the run agrees others by federated statistics.
+    pub(super) stats: RwLock<NormStats>,
     pub(super) tokenizer: RunTokenizer,
     pub(super) dtype: StoredDtype,
 }
@@ -87,7 +96,13 @@ impl ModelExporter for LeRobotExport {
     ) -> Result<Option<SimFigures>, BoxError> {
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
-        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &self.stats, self.tokenizer.backbone(), self.dtype)?;
+        let stats = self.stats.read().expect("statistics lock").clone();
+        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &stats, self.tokenizer.backbone(), self.dtype)?;
         Ok(None)
+    }
+
+    fn set_norm_stats(&self, stats: &NormalizationStats) -> Result<(), BoxError> {
+        *self.stats.write().expect("statistics lock") = norm_stats(stats)?;
+        Ok(())
     }
 }

@@ -8,7 +8,7 @@ mod tokenizer;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 
 use anyhow::Context;
 use burn::tensor::Device;
@@ -16,14 +16,18 @@ use fedvla_data::{
     ClientShard, ClientSplit, EpisodeTask, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec,
     build_shard, episode_tasks, partition,
 };
-use fedvla_federation::{BoxError, Evaluator, NamedTensors};
+use fedvla_federation::data_report::NORMALISED_FEATURES;
+use fedvla_federation::{
+    BoxError, DatasetSignature, Evaluator, FeatureSummary, NamedTensors, NormalizationStats, StatsSource,
+};
+use fedvla_learner::examples::{dataset_signature, norm_stats};
 use fedvla_learner::rollout::TaskTokens;
 use fedvla_learner::tensors::to_named;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes_as};
-use fedvla_policy::{FeatureStats, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
+use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
 use fedvla_sim::{Arrangement, TASK, TaskKind};
 
 use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
@@ -43,7 +47,11 @@ const SERVER_HELD_OUT: f64 = 0.15;
 pub struct SmolVlaWorkload {
     cfg: SmolVlaConfig,
     weights: WeightMap,
+    /// The dataset's normalisation statistics, and the policy's view of them.
+    dataset_stats: NormalizationStats,
     stats: NormStats,
+    /// What a volunteer's own dataset must match.
+    signature: DatasetSignature,
     tokenizer: RunTokenizer,
     /// What every round's export stores its tensors in.
     export_dtype: StoredDtype,
@@ -252,20 +260,22 @@ fn describe_inputs(
     out
 }
 
-fn norm_stats(dataset: &LeRobotDataset) -> anyhow::Result<NormStats> {
+/// The statistics of `meta/stats.json` the policy normalises with.
+fn dataset_stats(dataset: &LeRobotDataset) -> anyhow::Result<NormalizationStats> {
     let stats = dataset.stats().context("the dataset has no meta/stats.json")?;
-    let mut out = NormStats::default();
-    for feature in ["observation.state", "action"] {
+    let mut features = BTreeMap::new();
+    for feature in NORMALISED_FEATURES {
         let s = stats.get(feature).with_context(|| format!("meta/stats.json has no {feature}"))?;
-        out.features.insert(
-            feature.into(),
-            FeatureStats {
-                mean: s.mean.iter().map(|&v| v as f32).collect(),
-                std: s.std.iter().map(|&v| v as f32).collect(),
-            },
-        );
+        let summary = FeatureSummary {
+            count: s.count,
+            mean: s.mean.clone(),
+            std: s.std.clone(),
+            min: s.min.clone(),
+            max: s.max.clone(),
+        };
+        features.insert(feature.to_owned(), summary);
     }
-    Ok(out)
+    Ok(NormalizationStats { source: StatsSource::Dataset, clients: 0, features })
 }
 
 impl SmolVlaWorkload {
@@ -386,9 +396,12 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
-        let stats = norm_stats(&dataset)?;
+        let dataset_stats = dataset_stats(&dataset)?;
+        let stats = norm_stats(&dataset_stats)?;
         Ok(Self {
             inputs: describe_inputs(&root, &dataset, &cfg, &stats, &tokenizer),
+            signature: dataset_signature(dataset.info()),
+            dataset_stats,
             stats,
             cfg,
             weights,
@@ -462,14 +475,14 @@ impl Workload for SmolVlaWorkload {
             Box::new(LeRobotExport {
                 cfg: self.cfg.clone(),
                 frozen: Arc::clone(&frozen),
-                stats: self.stats.clone(),
+                stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.clone(),
                 dtype: self.export_dtype,
             }),
             Box::new(SimRollouts {
                 cfg: self.cfg.clone(),
                 frozen,
-                stats: self.stats.clone(),
+                stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.tokenizer(),
             }),
         ]
@@ -484,6 +497,9 @@ impl Workload for SmolVlaWorkload {
             frozen: Some(safetensors_bytes_as(&self.frozen_weights(), self.checkpoint_dtype)?.into()),
             rollout_task_tokens: ids.into_iter().map(|i| i as u32).collect(),
             rollout_task_mask: mask,
+            signature: Some(self.signature.clone()),
+            norm_stats: Some(self.dataset_stats.clone()),
+            tokenizer: Some(self.tokenizer.json().map_err(|e| format!("{e:#}"))?.into()),
         })
     }
 }

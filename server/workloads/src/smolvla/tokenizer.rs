@@ -66,6 +66,17 @@ impl RunTokenizer {
         }
     }
 
+    /// Its `tokenizer.json`, as volunteers download it to tokenize their own dataset's tasks.
+    pub(super) fn json(&self) -> anyhow::Result<Vec<u8>> {
+        match self {
+            Self::Generated(word) => Ok(serde_json::to_vec(&word.to_json())?),
+            Self::Checkpoint { backbone, .. } => {
+                let path = backbone.join("tokenizer.json");
+                std::fs::read(&path).with_context(|| format!("reading {}", path.display()))
+            }
+        }
+    }
+
     pub(super) fn backbone(&self) -> Backbone<'_> {
         match self {
             Self::Generated(word) => Backbone::Generated(word),

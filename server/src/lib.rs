@@ -1,10 +1,12 @@
 //! The `fedvla` binary's library: the native volunteer's I/O ([`native_client`]), whole runs in one process
-//! ([`runs`]: a federation over loopback, its centralized baseline) and experiments over them ([`experiment`]).
+//! ([`runs`]: a federation over loopback, its centralized baseline), experiments over them ([`experiment`]) and
+//! a load test of the server ([`loadtest`]).
 //! The CLI (src/main.rs, src/cmd/) is a thin layer over this, the aggregator (`fedvla-aggregator`), the app
 //! (`fedvla-app`) and the workloads (`fedvla-workloads`).
 
 pub mod attack;
 pub mod experiment;
+pub mod loadtest;
 pub mod native_client;
 pub mod own_dataset;
 pub mod runs;

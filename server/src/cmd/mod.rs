@@ -6,6 +6,7 @@ mod eval;
 mod experiment;
 mod gen_data;
 mod join;
+mod loadtest;
 mod parity;
 mod serve;
 mod simulate;
@@ -29,6 +30,9 @@ pub enum Command {
     Experiment(experiment::Args),
     /// Roll a policy (or the scripted expert) out in the sim: success rate, videos, results.json.
     Eval(eval::Args),
+    /// Load-test a server in this process with N WebSocket volunteers over loopback: latencies, CPU, memory,
+    /// and every update accepted, refused with a reason, or lost.
+    Loadtest(loadtest::Args),
     /// Measure what a client-round costs: update bytes per encoding and model size, codec throughput.
     Bench(bench::Args),
     /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
@@ -49,6 +53,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(args),
         Command::Parity(args) => parity::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Loadtest(args) => loadtest::run(args),
         Command::GenData(args) => gen_data::run(args),
         Command::Tasks(args) => tasks::run(args),
     }

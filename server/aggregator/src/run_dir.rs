@@ -1,10 +1,10 @@
 //! `outputs/<date_time>/`: resolved config, per-round metrics, global models, clients' rollouts. Crash-safe:
-//! every file is written atomically ([`fedvla_fs::write_atomic`]), a round's model directory is written under a
-//! temporary name and renamed, metrics lines are appended and synced once per round (a torn last line is dropped
-//! on resume).
+//! every file is written atomically ([`fedvla_fs::write_atomic`]: whole, synced, its directory synced), a round's
+//! model directory is written under a temporary name, synced as a tree and renamed, and the metrics file is
+//! replaced whole with each round's line added; a round is complete once its metrics line is. On resume
+//! ([`RunDir::resume_point`]) whatever a crash left of later rounds, and every temporary, is swept.
 
 use std::fs::{self, File, OpenOptions};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use fedvla_federation::{BoxError, NamedTensors, NormalizationStats, TensorError};
@@ -93,7 +93,7 @@ pub struct RunDir {
 impl RunDir {
     /// Creates `<base>/<date_time>/` (suffixed if taken) and writes the resolved config.
     pub fn create(base: &Path, config: &RunConfig) -> Result<Self, RunDirError> {
-        fs::create_dir_all(base).map_err(io(base))?;
+        fedvla_fs::create_dir_all(base).map_err(io(base))?;
         let stamp = chrono::Local::now().format("%Y-%m-%d_%H-%M-%S").to_string();
         let mut path = base.join(&stamp);
         let mut n = 1;
@@ -102,6 +102,7 @@ impl RunDir {
             n += 1;
         }
         fs::create_dir(&path).map_err(io(&path))?;
+        fedvla_fs::sync_dir(base).map_err(io(base))?;
         let dir = Self { path };
         dir.write_config(config)?;
         Ok(dir)
@@ -110,10 +111,10 @@ impl RunDir {
     /// Creates the run directory `path` itself (an experiment names its runs' folders) and writes the resolved
     /// config; `path` must not exist yet.
     pub fn create_at(path: &Path, config: &RunConfig) -> Result<Self, RunDirError> {
-        if let Some(parent) = path.parent() {
-            fs::create_dir_all(parent).map_err(io(parent))?;
-        }
+        let parent = path.parent().unwrap_or(Path::new("."));
+        fedvla_fs::create_dir_all(parent).map_err(io(parent))?;
         fs::create_dir(path).map_err(io(path))?;
+        fedvla_fs::sync_dir(parent).map_err(io(parent))?;
         let dir = Self { path: path.to_owned() };
         dir.write_config(config)?;
         Ok(dir)
@@ -158,7 +159,29 @@ impl RunDir {
         }
     }
 
-    /// The last round with a metrics line, dropping a torn last line left by a crash mid-write.
+    /// Where a (re)started server takes the run up: the last completed round, after sweeping what a crash left
+    /// beyond it (a model directory saved before its metrics line, clients' evaluations of a round that did not
+    /// complete, temporary directories and files), so that every file in the run directory belongs to a completed
+    /// round or to the run, and the rounds redone are written afresh.
+    pub fn resume_point(&self) -> Result<Option<u64>, RunDirError> {
+        let last = self.last_completed_round()?;
+        let removed = fedvla_fs::remove_temporaries(&self.path).map_err(io(&self.path))?;
+        if removed > 0 {
+            tracing::warn!(removed, "removed temporary files a crash left");
+        }
+        let beyond = |round: u64| last.is_none_or(|l| round > l);
+        // `round_N.tmp` is a model directory being written; `round_N` beyond the last metrics line was saved but its
+        // round never completed.
+        remove_dirs(&self.path.join(MODELS_DIR), |name| match name.strip_suffix(".tmp") {
+            Some(stem) => round_number(stem).is_some(),
+            None => round_number(name).is_some_and(beyond),
+        })?;
+        remove_dirs(&self.path.join(EVALUATE_DIR), |name| round_number(name).is_some_and(beyond))?;
+        Ok(last)
+    }
+
+    /// The last round with a metrics line, dropping a torn last line left by a crash mid-write (metrics files are
+    /// no longer appended to, but a run written before may end in one).
     pub fn last_completed_round(&self) -> Result<Option<u64>, RunDirError> {
         let path = self.path.join(METRICS_FILE);
         let text = match fs::read_to_string(&path) {
@@ -183,14 +206,18 @@ impl RunDir {
         Ok(last)
     }
 
-    /// Appends one round's metrics line and syncs it to disk.
+    /// Adds one round's metrics line: the file is written again whole and renamed over the old one (it is small),
+    /// so a crash or a full disk leaves the lines before it or all of them, never a torn one.
     pub fn append_metrics(&self, line: &MetricsLine) -> Result<(), RunDirError> {
         let path = self.path.join(METRICS_FILE);
-        let mut file = OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
-        let mut text = serde_json::to_string(line).expect("metrics serialize");
+        let mut text = match fs::read_to_string(&path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
+            Err(e) => return Err(io(&path)(e)),
+        };
+        text.push_str(&serde_json::to_string(line).expect("metrics serialize"));
         text.push('\n');
-        file.write_all(text.as_bytes()).map_err(io(&path))?;
-        file.sync_data().map_err(io(&path))
+        write_atomic(&path, text.as_bytes())
     }
 
     /// Where client `client_id`'s evaluation during round `round` is filed.
@@ -206,7 +233,7 @@ impl RunDir {
         results: &RolloutResults,
     ) -> Result<(), RunDirError> {
         let dir = self.client_eval_dir(round, client_id);
-        fs::create_dir_all(&dir).map_err(io(&dir))?;
+        fedvla_fs::create_dir_all(&dir).map_err(io(&dir))?;
         write_atomic(&dir.join(RESULTS_FILE), &serde_json::to_vec_pretty(results).expect("results serialize"))
     }
 
@@ -214,8 +241,9 @@ impl RunDir {
         self.path.join(MODELS_DIR).join(format!("round_{round}"))
     }
 
-    /// Writes `global_model/round_N/` through every exporter into a temporary directory, then renames it. Returns
-    /// what the exporters measured in the sim.
+    /// Writes `global_model/round_N/` through every exporter into a temporary directory, syncs it, then renames it.
+    /// Returns what the exporters measured in the sim. On failure (a full disk) the temporary directory is removed:
+    /// the rounds before stay as they were.
     pub fn save_model(
         &self,
         round: u64,
@@ -229,7 +257,30 @@ impl RunDir {
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
         }
-        fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        let written = Self::write_model(round, global, strategy_state, exporters, config, &tmp);
+        if written.is_err() {
+            let _ = fs::remove_dir_all(&tmp);
+        }
+        let measured = written?;
+        if dir.exists() {
+            // Left by a run that crashed after saving but before its metrics line: this round is being redone.
+            fs::remove_dir_all(&dir).map_err(io(&dir))?;
+        }
+        fs::rename(&tmp, &dir).map_err(io(&dir))?;
+        fedvla_fs::sync_dir(self.path.join(MODELS_DIR).as_path()).map_err(io(&dir))?;
+        Ok(measured)
+    }
+
+    /// [`save_model`](Self::save_model)'s writing into `tmp`, every file and directory synced before it returns.
+    fn write_model(
+        round: u64,
+        global: &NamedTensors,
+        strategy_state: &NamedTensors,
+        exporters: &[Box<dyn ModelExporter>],
+        config: &RunConfig,
+        tmp: &Path,
+    ) -> Result<Option<SimFigures>, RunDirError> {
+        fedvla_fs::create_dir_all(tmp).map_err(io(tmp))?;
         if !strategy_state.is_empty() {
             let bytes = strategy_state.to_safetensors().map_err(|source| RunDirError::Model { round, source })?;
             write_atomic(&tmp.join(STRATEGY_FILE), &bytes)?;
@@ -237,15 +288,11 @@ impl RunDir {
         let mut measured = None;
         for exporter in exporters {
             let figures =
-                exporter.export(round, global, config, &tmp).map_err(|source| RunDirError::Export { round, source })?;
+                exporter.export(round, global, config, tmp).map_err(|source| RunDirError::Export { round, source })?;
             measured = measured.or(figures);
         }
-        if dir.exists() {
-            // Left by a run that crashed after saving but before its metrics line: this round is being redone.
-            fs::remove_dir_all(&dir).map_err(io(&dir))?;
-        }
-        fs::rename(&tmp, &dir).map_err(io(&dir))?;
-        fedvla_fs::sync_dir(self.path.join(MODELS_DIR).as_path()).map_err(io(&dir))?;
+        // The exporters' videos are written in place, not through write_atomic: synced here, before the rename.
+        fedvla_fs::sync_tree(tmp).map_err(io(tmp))?;
         Ok(measured)
     }
 
@@ -272,6 +319,28 @@ impl RunDir {
     }
 }
 
+/// Removes the entries of `parent` (if it exists) whose names `unfinished` picks, and syncs it.
+fn remove_dirs(parent: &Path, unfinished: impl Fn(&str) -> bool) -> Result<(), RunDirError> {
+    let entries = match fs::read_dir(parent) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(io(parent)(e)),
+    };
+    for entry in entries {
+        let path = entry.map_err(io(parent))?.path();
+        if path.file_name().is_some_and(|name| unfinished(&name.to_string_lossy())) {
+            tracing::warn!(path = %path.display(), "removing what an unfinished round left");
+            fs::remove_dir_all(&path).map_err(io(&path))?;
+        }
+    }
+    fedvla_fs::sync_dir(parent).map_err(io(parent))
+}
+
+/// `N` of a `round_N` directory.
+fn round_number(name: &str) -> Option<u64> {
+    name.strip_prefix("round_")?.parse().ok()
+}
+
 /// Writes `bytes` to `path` atomically.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunDirError> {
     fedvla_fs::write_atomic(path, bytes).map_err(io(path))
@@ -279,6 +348,8 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), RunDirError> {
 
 #[cfg(test)]
 mod tests {
+    use std::io::Write;
+
     use super::*;
 
     #[test]
@@ -296,6 +367,38 @@ mod tests {
         let (reopened, config) = RunDir::open(dir.path()).unwrap();
         assert_eq!(config, RunConfig::default());
         assert_eq!(reopened.last_completed_round().unwrap(), Some(1));
+    }
+
+    #[test]
+    fn resuming_sweeps_what_a_crash_left_beyond_the_last_completed_round() {
+        let base = tempfile::tempdir().unwrap();
+        let dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
+        let mut t = NamedTensors::new();
+        t.insert("w", vec![1], vec![1.0]).unwrap();
+        let exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
+        for round in 0..=2 {
+            dir.save_model(round, &t, &NamedTensors::new(), &exporters, &RunConfig::default()).unwrap();
+            dir.write_client_results(round, 7, &RolloutResults::default()).unwrap();
+        }
+        // Round 2 was saved, but the crash came before its metrics line; round 3 was being written.
+        for round in 0..=1 {
+            dir.append_metrics(&MetricsLine { round, ..MetricsLine::default() }).unwrap();
+        }
+        fs::create_dir_all(dir.model_dir(3).with_extension("tmp")).unwrap();
+        fs::write(dir.path().join(".metrics.jsonl.partial"), b"{").unwrap();
+        fs::write(dir.model_dir(1).join(".x.partial"), b"").unwrap();
+
+        assert_eq!(dir.resume_point().unwrap(), Some(1));
+        let names = |d: PathBuf| {
+            let mut names: Vec<_> = fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name()).collect();
+            names.sort();
+            names
+        };
+        assert_eq!(names(dir.path().join(MODELS_DIR)), ["round_0", "round_1"]);
+        assert_eq!(names(dir.path().join(EVALUATE_DIR)), ["round_0", "round_1"]);
+        assert_eq!(names(dir.model_dir(1)), [TRAINABLE_FILE]);
+        assert_eq!(names(dir.path().to_owned()), [CONFIG_FILE, EVALUATE_DIR, MODELS_DIR, METRICS_FILE]);
+        assert_eq!(dir.load_model(1).unwrap(), t);
     }
 
     #[test]

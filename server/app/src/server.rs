@@ -60,7 +60,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     let ServerParts { config, run_dir, initial, mut strategy, evaluator, exporters, volunteer } = parts;
     let tls = config.tls_files().map(|(cert, key)| tls::acceptor(cert, key)).transpose()?;
     let spec = Arc::new(initial.spec());
-    let completed = run_dir.last_completed_round()?;
+    let completed = run_dir.resume_point()?;
     let global = match completed {
         Some(round) => {
             let saved = run_dir.load_model(round)?;

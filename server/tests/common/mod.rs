@@ -150,11 +150,21 @@ pub fn spawn_client(
 pub fn spawn_trainer(
     handle: &ServerHandle,
     shard: usize,
+    trainer: TestTrainer,
+) -> JoinHandle<Result<ClientSummary, ClientError>> {
+    spawn_trainer_at(&format!("ws://{}", handle.addr()), shard, trainer)
+}
+
+/// A native client named `client-<shard>` training with `trainer`, joining the server at `url` (one started as a
+/// process of the `fedvla` binary, which a test may kill before the client connects: a transport error then).
+pub fn spawn_trainer_at(
+    url: &str,
+    shard: usize,
     mut trainer: TestTrainer,
 ) -> JoinHandle<Result<ClientSummary, ClientError>> {
-    let url = format!("ws://{}", handle.addr());
+    let url = url.to_owned();
     tokio::spawn(async move {
-        let mut transport = NativeTransport::connect(&url).await.expect("connect");
+        let mut transport = NativeTransport::connect(&url).await.map_err(ClientError::Transport)?;
         let options =
             ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32), data: None };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await

@@ -1,15 +1,19 @@
 //! `fedvla bench`: what a client-round costs on the wire and in the codec, measured from the codec itself.
 //! For each model size (LeRobot's default freezing: the action expert and its projections train), the exact
 //! bytes of one update under every encoding, frames included; then, at one size, how fast the client encodes
-//! and the server decodes a delta of random values.
+//! and the server decodes a delta of random values; then, per size, training samples/s on the CPU with and
+//! without the frozen-feature cache (each row's context keys and values computed once, then reused).
 
 use std::time::Instant;
 
+use burn::tensor::Device;
 use fedvla_federation::codec::{
     DEFAULT_MAX_FRAME_BYTES, HEADER_LEN, decode_payload, encode_delta_payload, payload_len,
 };
 use fedvla_federation::{NamedTensors, TensorSpec, UpdateEncoding};
-use fedvla_policy::SmolVlaConfig;
+use fedvla_policy::vlm_with_expert::ContextKv;
+use fedvla_policy::weights::init_random;
+use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
 
 /// What the Python/Flower peer ships per transfer (NOTES.md): the yardstick of the ratios.
 const PEER_BYTES: f64 = 1.8e9;
@@ -25,6 +29,15 @@ pub struct Args {
     /// Top-k's fraction.
     #[arg(long, default_value_t = 0.01)]
     topk_fraction: f64,
+    /// Model sizes whose training step is timed with and without the frozen-feature cache ("" skips it; `base`
+    /// takes minutes a step on two cores).
+    #[arg(long, value_delimiter = ',', default_value = "tiny,small")]
+    cache_sizes: Vec<String>,
+    /// Samples per step, and timed steps each way, of the cache comparison.
+    #[arg(long, default_value_t = 8)]
+    cache_batch: usize,
+    #[arg(long, default_value_t = 3)]
+    cache_steps: usize,
 }
 
 fn encodings(topk_fraction: f64) -> [UpdateEncoding; 5] {
@@ -72,10 +85,27 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    if args.time_size.is_empty() {
-        return Ok(());
+    if !args.time_size.is_empty() {
+        codec_speed(&args.time_size, &encodings)?;
     }
-    let spec = trainable_spec(&args.time_size)?;
+    let sizes: Vec<&String> = args.cache_sizes.iter().filter(|s| !s.is_empty()).collect();
+    if !sizes.is_empty() {
+        println!(
+            "\nTraining on the CPU, LeRobot's default freezing, batch {}, {} steps each way after one untimed:",
+            args.cache_batch, args.cache_steps
+        );
+        println!("| size | without the cache, samples/s | with it, samples/s | ratio | cache per sample |");
+        println!("|---|---|---|---|---|");
+    }
+    for size in sizes {
+        cache_speed(size, args.cache_batch, args.cache_steps)?;
+    }
+    Ok(())
+}
+
+/// How fast the client encodes and the server decodes a random delta of `size`'s trainable tensors.
+fn codec_speed(size: &str, encodings: &[UpdateEncoding]) -> anyhow::Result<()> {
+    let spec = trainable_spec(size)?;
     let mut delta = NamedTensors::new();
     let mut state = 0x9E37_79B9_7F4A_7C15u64;
     for (name, shape) in spec.iter() {
@@ -88,10 +118,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         delta.insert(name, shape.to_vec(), values)?;
     }
     let mb = spec.byte_size() as f64 / 1e6;
-    println!("\nCodec throughput at {} ({mb:.1} MB of f32 delta), one thread:", args.time_size);
+    println!("\nCodec throughput at {} ({mb:.1} MB of f32 delta), one thread:", size);
     println!("| encoding | encode MB/s | decode MB/s |");
     println!("|---|---|---|");
-    for encoding in encodings.into_iter().filter(|e| *e != UpdateEncoding::F32) {
+    for &encoding in encodings.iter().filter(|e| **e != UpdateEncoding::F32) {
         let mut residual = delta.clone();
         let start = Instant::now();
         let payload = encode_delta_payload(&mut residual, encoding);
@@ -101,5 +131,34 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let decode = start.elapsed().as_secs_f64();
         println!("| {} | {:.0} | {:.0} |", encoding.name(), mb / encode, mb / decode);
     }
+    Ok(())
+}
+
+/// One row of the cache table: training samples/s of `size` computing every step's context, and reusing each
+/// sample's (computed before the timed steps, as a cache holds them from a row's second visit on).
+fn cache_speed(size: &str, batch_size: usize, steps: usize) -> anyhow::Result<()> {
+    let cfg = SmolVlaConfig::preset(size)?;
+    anyhow::ensure!(cfg.backbone_frozen(), "model size {size} trains its backbone: nothing to cache");
+    let weights = init_random(&cfg.param_specs(), 1);
+    let batch = Batch::random(&cfg, batch_size, 7);
+    let mut trainer = Trainer::new(&cfg, &weights, &Device::flex().autodiff(), 3)?;
+    let time = |trainer: &mut Trainer, context: Option<&ContextKv>| -> anyhow::Result<f64> {
+        trainer.train_step_from(&batch, context, 1e-4)?;
+        let start = Instant::now();
+        for _ in 0..steps {
+            trainer.train_step_from(&batch, context, 1e-4)?;
+        }
+        Ok((steps * batch_size) as f64 / start.elapsed().as_secs_f64())
+    };
+    let without = time(&mut trainer, None)?;
+    let rows: Vec<ContextKv> =
+        (0..batch_size).map(|n| trainer.context_kv(&batch.rows(&[n]))).collect::<Result<_, _>>()?;
+    let context = ContextKv::stack(&rows.iter().collect::<Vec<_>>());
+    let with = time(&mut trainer, Some(&context))?;
+    println!(
+        "| {size} | {without:.2} | {with:.2} | {:.1}x | {:.2} MB |",
+        with / without,
+        rows.iter().map(ContextKv::bytes).sum::<usize>() as f64 / batch_size as f64 / 1e6
+    );
     Ok(())
 }

@@ -4,6 +4,7 @@
 
 pub mod evaluator;
 pub mod examples;
+pub mod feature_cache;
 pub mod heldout;
 pub mod rollout;
 pub mod tensors;

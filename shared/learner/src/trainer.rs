@@ -14,6 +14,7 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 
 use crate::examples::ShardExamples;
+use crate::feature_cache::{DEFAULT_CACHE_BYTES, FeatureCache};
 use crate::heldout::{HeldOut, heldout_metrics};
 use crate::rollout::{EpisodeResult, SimPolicy, TaskTokens, run_episode};
 use crate::tensors::{to_named, to_weights};
@@ -37,6 +38,8 @@ pub struct SmolVlaTrainer {
     backend: String,
     /// The sim task's tokens; without them the client does not roll out.
     rollout_tokens: Option<TaskTokens>,
+    /// Each row's context keys and values, when the backbone is frozen (see [`FeatureCache`]).
+    cache: Option<FeatureCache>,
 }
 
 impl SmolVlaTrainer {
@@ -65,7 +68,21 @@ impl SmolVlaTrainer {
             held_out,
             backend: backend.into(),
             rollout_tokens: None,
+            cache: cfg.backbone_frozen().then(|| FeatureCache::new(DEFAULT_CACHE_BYTES)),
         })
+    }
+
+    /// With a frozen-feature cache of `budget_bytes` (0: none, every step computes its context afresh), when the
+    /// backbone is frozen.
+    pub fn with_feature_cache(mut self, budget_bytes: usize) -> Self {
+        let frozen = self.trainer.model.cfg.backbone_frozen();
+        self.cache = (frozen && budget_bytes > 0).then(|| FeatureCache::new(budget_bytes));
+        self
+    }
+
+    /// The frozen-feature cache, when it has one.
+    pub fn feature_cache(&self) -> Option<&FeatureCache> {
+        self.cache.as_ref()
     }
 
     /// Lets this client roll the global model out in the sim when a task asks.
@@ -122,7 +139,11 @@ impl SmolVlaTrainer {
                 cursor += 1;
             }
             let batch = self.examples.batch(&picked, chunk)?;
-            let loss = self.trainer.train_step_async(&batch, task.lr_at(step)).await?.loss;
+            let context = match &mut self.cache {
+                Some(cache) => Some(cache.context(&self.trainer, &picked, &batch)?),
+                None => None,
+            };
+            let loss = self.trainer.train_step_async_from(&batch, context.as_ref(), task.lr_at(step)).await?.loss;
             loss_sum += loss as f64;
             after_step(StepProgress { step: step + 1, steps: task.local_steps, loss }).await;
         }

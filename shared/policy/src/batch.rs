@@ -27,6 +27,33 @@ pub struct Batch {
 }
 
 impl Batch {
+    /// The samples `rows` of this batch, in that order (a frozen-feature cache computes each row's context alone).
+    pub fn rows(&self, rows: &[usize]) -> Batch {
+        let b = self.batch_size();
+        let pick = |t: &HostTensor| {
+            let per = t.data.len() / b.max(1);
+            let mut shape = t.shape.clone();
+            shape[0] = rows.len();
+            HostTensor::new(shape, rows.iter().flat_map(|&n| t.data[n * per..(n + 1) * per].iter().copied()).collect())
+        };
+        let columns = |values: &[i64], width: usize| -> Vec<i64> {
+            rows.iter().flat_map(|&n| values[n * width..(n + 1) * width].iter().copied()).collect()
+        };
+        let l = self.lang_len;
+        Batch {
+            images: self.images.iter().map(pick).collect(),
+            lang_tokens: columns(&self.lang_tokens, l),
+            lang_mask: rows.iter().flat_map(|&n| self.lang_mask[n * l..(n + 1) * l].iter().copied()).collect(),
+            lang_len: l,
+            state: pick(&self.state),
+            actions: self.actions.as_ref().map(pick),
+            action_is_pad: self.action_is_pad.as_ref().map(|pad| {
+                let per = pad.len() / b.max(1);
+                rows.iter().flat_map(|&n| pad[n * per..(n + 1) * per].iter().copied()).collect()
+            }),
+        }
+    }
+
     /// `b` samples of uniform random images, state and actions with a fixed 6-token task, for benchmarks and
     /// tests (and the browser's self-test): the shapes of `cfg`, nothing of a real dataset.
     pub fn random(cfg: &SmolVlaConfig, b: usize, seed: u64) -> Self {

@@ -352,6 +352,13 @@ impl SmolVlaConfig {
     }
 
     /// Image tokens per camera after the pixel-shuffle connector.
+    /// Whether nothing of the backbone trains (vision tower, connector, token embeddings and text layers:
+    /// `train_expert_only`): then the context's keys and values depend on the frame and the task alone, and a
+    /// frozen-feature cache may keep them.
+    pub fn backbone_frozen(&self) -> bool {
+        self.train_expert_only
+    }
+
     pub fn tokens_per_image(&self) -> usize {
         let v = &self.vlm.vision_config;
         let side = v.image_size / v.patch_size;

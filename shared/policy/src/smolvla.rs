@@ -7,7 +7,10 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::batch::{Prepared, att_2d_mask, mask_block, position_ids};
 use crate::config::SmolVlaConfig;
-use crate::vlm_with_expert::{ActionExpert, PrefixKv, PrefixLayout, SuffixLayout, Trace, Vlm, encode_prefix};
+use crate::vlm_with_expert::{
+    ActionExpert, ContextKv, PrefixKv, PrefixLayout, SuffixLayout, Trace, Vlm, encode_context, encode_prefix,
+    encode_state,
+};
 use crate::weights::ParamStore;
 
 /// SmolVLA: the VLM and the action expert side by side.
@@ -98,17 +101,45 @@ impl SmolVla {
 
     /// Runs the prefix: `[cameras | language | state]` through the frozen text layers.
     pub fn encode_prefix(&self, obs: &Prepared, trace: Option<&mut Trace>) -> Prefix {
-        let b = obs.batch;
-        let scale = (self.cfg.vlm.text_config.hidden_size as f64).sqrt();
-        let images = self.embed_images(obs);
-        let per_image = images.first().map_or(0, |t| t.dims()[1]);
-        let mut parts: Vec<Tensor<3>> = images.into_iter().map(|t| t * scale).collect();
-        parts.push(self.vlm.embed_language(&obs.lang_tokens, b, obs.lang_len) * scale);
-        let context = Tensor::cat(parts, 1);
-        let state_token = self.expert.state_proj.forward(obs.state.clone()).unsqueeze_dim::<3>(1);
+        let context = self.context(obs);
+        let (layout, prefix) = self.prefix_layout(obs, context.dims()[1]);
+        let kv = encode_prefix(&self.vlm, context, self.state_token(obs), &layout, trace);
+        Prefix { kv, ..prefix }
+    }
 
+    /// The context's keys and values (cameras and language through the text layers) for `obs`: with the backbone
+    /// frozen, a function of its frames and task alone, which a frozen-feature cache keeps.
+    pub fn context_kv(&self, obs: &Prepared) -> ContextKv {
+        let context = self.context(obs);
+        let (layout, _) = self.prefix_layout(obs, context.dims()[1]);
+        encode_context(&self.vlm, context, &layout)
+    }
+
+    /// [`SmolVla::encode_prefix`] with the context's keys and values given (`context_kv` of the same frames and
+    /// tasks, stacked): only the state token row runs.
+    pub fn encode_prefix_from(&self, obs: &Prepared, context: &ContextKv) -> Prefix {
+        let (layout, prefix) = self.prefix_layout(obs, context.len());
+        let kv = encode_state(&self.vlm, context, self.state_token(obs), &layout);
+        Prefix { kv, ..prefix }
+    }
+
+    /// Camera and language embeddings, scaled: `[B, Lc, hidden]`.
+    fn context(&self, obs: &Prepared) -> Tensor<3> {
+        let scale = (self.cfg.vlm.text_config.hidden_size as f64).sqrt();
+        let mut parts: Vec<Tensor<3>> = self.embed_images(obs).into_iter().map(|t| t * scale).collect();
+        parts.push(self.vlm.embed_language(&obs.lang_tokens, obs.batch, obs.lang_len) * scale);
+        Tensor::cat(parts, 1)
+    }
+
+    fn state_token(&self, obs: &Prepared) -> Tensor<3> {
+        self.expert.state_proj.forward(obs.state.clone()).unsqueeze_dim::<3>(1)
+    }
+
+    /// The prefix's masks and positions for a context of `lc` tokens (a [`Prefix`] still without keys and values).
+    fn prefix_layout(&self, obs: &Prepared, lc: usize) -> (PrefixLayout, Prefix) {
+        let b = obs.batch;
         let cams = obs.images.len();
-        let lc = cams * per_image + obs.lang_len;
+        let per_image = (lc - obs.lang_len) / cams.max(1);
         let lp = lc + 1;
         let mut pad = Vec::with_capacity(b * lp);
         let mut ar = Vec::with_capacity(b * lp);
@@ -129,8 +160,8 @@ impl SmolVla {
             context_positions: (0..b).flat_map(|n| positions[n * lp..n * lp + lc].to_vec()).collect(),
             state_positions: (0..b).map(|n| positions[n * lp + lc]).collect(),
         };
-        let kv = encode_prefix(&self.vlm, context, state_token, &layout, trace);
-        Prefix { kv, pad, len: lp, batch: b, att_2d, positions }
+        let kv = PrefixKv { keys: Vec::new(), values: Vec::new() };
+        (layout, Prefix { kv, pad, len: lp, batch: b, att_2d, positions })
     }
 
     /// Masks and positions of the action tokens after `prefix` (the mask_ar rule with every action
@@ -199,14 +230,41 @@ impl SmolVla {
         action_is_pad: Option<&[bool]>,
         mut trace: Option<&mut Trace>,
     ) -> FlowMatchingOutput {
+        let prefix = self.encode_prefix(obs, trace.as_deref_mut());
+        self.loss_after(&prefix, actions, noise, time, action_is_pad, trace)
+    }
+
+    /// [`SmolVla::forward_loss`] with the context's keys and values given (see [`SmolVla::encode_prefix_from`]).
+    pub fn forward_loss_from(
+        &self,
+        obs: &Prepared,
+        context: &ContextKv,
+        actions: Tensor<3>,
+        noise: Tensor<3>,
+        time: &[f32],
+        action_is_pad: Option<&[bool]>,
+    ) -> FlowMatchingOutput {
+        let prefix = self.encode_prefix_from(obs, context);
+        self.loss_after(&prefix, actions, noise, time, action_is_pad, None)
+    }
+
+    /// The flow-matching loss of the expert's velocity after `prefix`.
+    fn loss_after(
+        &self,
+        prefix: &Prefix,
+        actions: Tensor<3>,
+        noise: Tensor<3>,
+        time: &[f32],
+        action_is_pad: Option<&[bool]>,
+        trace: Option<&mut Trace>,
+    ) -> FlowMatchingOutput {
         let device = actions.device();
         let [b, t, amax] = actions.dims();
         let tt = Tensor::<1>::from_data(TensorData::new(time.to_vec(), [b]), &device).reshape([b, 1, 1]);
         let x_t = noise.clone() * tt.clone() + actions.clone() * (tt.neg() + 1.0);
         let u_t = noise - actions;
-        let prefix = self.encode_prefix(obs, trace.as_deref_mut());
-        let layout = self.suffix_layout(&prefix);
-        let v_t = self.velocity(&prefix, &layout, x_t.clone(), time, trace);
+        let layout = self.suffix_layout(prefix);
+        let v_t = self.velocity(prefix, &layout, x_t.clone(), time, trace);
         let losses = (u_t.clone() - v_t.clone()).square();
         let a = self.cfg.action_dim();
         let valid: Vec<f32> = match action_is_pad {

@@ -14,6 +14,7 @@ use crate::batch::{Batch, Prepared, prepare_actions};
 use crate::config::SmolVlaConfig;
 use crate::error::PolicyError;
 use crate::smolvla::{FlowMatchingOutput, SmolVla, gaussian_noise, sample_times};
+use crate::vlm_with_expert::ContextKv;
 use crate::weights::{HostTensor, ParamStore, WeightMap, check_keys};
 
 /// AdamW hyper-parameters (LeRobot's SmolVLA preset by default).
@@ -167,11 +168,35 @@ impl Trainer {
 
     /// Forward pass with given noise and time (no update).
     pub fn forward(&self, batch: &Batch, noise: Tensor<3>, time: &[f32]) -> Result<FlowMatchingOutput, PolicyError> {
+        self.forward_from(batch, None, noise, time)
+    }
+
+    /// [`Trainer::forward`], with the context's keys and values of `batch` given when a frozen-feature cache
+    /// holds them (only the state row and the expert run then).
+    fn forward_from(
+        &self,
+        batch: &Batch,
+        context: Option<&ContextKv>,
+        noise: Tensor<3>,
+        time: &[f32],
+    ) -> Result<FlowMatchingOutput, PolicyError> {
         let obs = Prepared::new(&self.model.cfg, batch, &self.device)?;
         let actions =
             batch.actions.as_ref().ok_or_else(|| PolicyError::Input("batch has no actions to train on".into()))?;
         let actions = prepare_actions(&self.model.cfg, actions, &self.device);
-        Ok(self.model.forward_loss(&obs, actions, noise, time, batch.action_is_pad.as_deref(), None))
+        let pad = batch.action_is_pad.as_deref();
+        Ok(match context {
+            Some(context) => self.model.forward_loss_from(&obs, context, actions, noise, time, pad),
+            None => self.model.forward_loss(&obs, actions, noise, time, pad, None),
+        })
+    }
+
+    /// The context's keys and values of `batch` (see [`SmolVla::context_kv`]), without a graph: what a
+    /// frozen-feature cache keeps. Only meaningful while the backbone is frozen
+    /// ([`SmolVlaConfig::backbone_frozen`]).
+    pub fn context_kv(&self, batch: &Batch) -> Result<ContextKv, PolicyError> {
+        let obs = Prepared::new(&self.model.cfg, batch, &self.device)?;
+        Ok(self.model.context_kv(&obs).detach())
     }
 
     /// Seeded flow-matching noise `[B, T, max_action_dim]` and times `t = 0.999·Beta(1.5, 1) + 0.001`.
@@ -184,8 +209,19 @@ impl Trainer {
 
     /// One training step on `batch` with seeded noise and time, at learning rate `lr`.
     pub fn train_step(&mut self, batch: &Batch, lr: f64) -> Result<StepReport, PolicyError> {
+        self.train_step_from(batch, None, lr)
+    }
+
+    /// [`Trainer::train_step`] with the context's keys and values of `batch` given when a frozen-feature cache
+    /// holds them.
+    pub fn train_step_from(
+        &mut self,
+        batch: &Batch,
+        context: Option<&ContextKv>,
+        lr: f64,
+    ) -> Result<StepReport, PolicyError> {
         let (noise, time) = self.sample_noise_and_time(batch.batch_size());
-        let (loss, grads) = self.backward(batch, noise, &time)?;
+        let (loss, grads) = self.backward(batch, context, noise, &time)?;
         let norm_sq = squared_norm(&grads).map_or(0.0, |n| n.into_scalar::<f64>());
         self.finish_step(loss.into_scalar::<f32>(), norm_sq, grads, lr)
     }
@@ -193,8 +229,19 @@ impl Trainer {
     /// [`Trainer::train_step`] with its two reads (loss and gradient norm) awaited: a browser's WebGPU device
     /// cannot read synchronously.
     pub async fn train_step_async(&mut self, batch: &Batch, lr: f64) -> Result<StepReport, PolicyError> {
+        self.train_step_async_from(batch, None, lr).await
+    }
+
+    /// [`Trainer::train_step_async`] with the context's keys and values of `batch` given when a frozen-feature
+    /// cache holds them.
+    pub async fn train_step_async_from(
+        &mut self,
+        batch: &Batch,
+        context: Option<&ContextKv>,
+        lr: f64,
+    ) -> Result<StepReport, PolicyError> {
         let (noise, time) = self.sample_noise_and_time(batch.batch_size());
-        let (loss, grads) = self.backward(batch, noise, &time)?;
+        let (loss, grads) = self.backward(batch, context, noise, &time)?;
         let norm_sq = match squared_norm(&grads) {
             Some(n) => n.into_scalar_async::<f64>().await.map_err(read_error)?,
             None => 0.0,
@@ -211,7 +258,20 @@ impl Trainer {
         time: &[f32],
         lr: f64,
     ) -> Result<(StepReport, WeightMap), PolicyError> {
-        let (loss, grads) = self.backward(batch, noise, time)?;
+        self.train_step_from_with(batch, None, noise, time, lr)
+    }
+
+    /// [`Trainer::train_step_with`] with the context's keys and values of `batch` given when a frozen-feature
+    /// cache holds them.
+    pub fn train_step_from_with(
+        &mut self,
+        batch: &Batch,
+        context: Option<&ContextKv>,
+        noise: Tensor<3>,
+        time: &[f32],
+        lr: f64,
+    ) -> Result<(StepReport, WeightMap), PolicyError> {
+        let (loss, grads) = self.backward(batch, context, noise, time)?;
         let raw_grads = grads
             .iter()
             .map(|(k, g)| {
@@ -233,10 +293,11 @@ impl Trainer {
     fn backward(
         &mut self,
         batch: &Batch,
+        context: Option<&ContextKv>,
         noise: Tensor<3>,
         time: &[f32],
     ) -> Result<(Tensor<1>, BTreeMap<String, Tensor<1>>), PolicyError> {
-        let loss = self.forward(batch, noise, time)?.loss;
+        let loss = self.forward_from(batch, context, noise, time)?.loss;
         let grads = loss.backward();
         let mut grads: BTreeMap<String, Tensor<1>> =
             self.trainable.iter().filter_map(|(k, (leaf, _))| leaf.grad(&grads).map(|g| (k.clone(), g))).collect();

@@ -7,7 +7,9 @@
 //! (mask rule), so their hidden states depend on the backbone and the frame only: with a frozen
 //! backbone they run without any trainable tensor, hence without an autodiff graph (a trained
 //! backbone gives them one). The single state token row runs through the same layers with a
-//! graph, so `state_proj` receives its exact gradient.
+//! graph, so `state_proj` receives its exact gradient. With the whole backbone frozen, the context's keys and
+//! values ([`ContextKv`]) are a function of the frame and the task alone: [`encode_context`] computes them once,
+//! a frozen-feature cache keeps them, and [`encode_state`] runs only the state row against them.
 
 use burn::tensor::{Int, Tensor, TensorData};
 
@@ -111,6 +113,57 @@ pub struct Trace {
     pub suffix_out: Option<Tensor<3>>,
 }
 
+/// The context's per-layer keys (after RoPE) and values, `[B, Lc, KVH, hd]` each: all that the state token and
+/// the expert read of the image and language tokens.
+#[derive(Debug, Clone)]
+pub struct ContextKv {
+    pub keys: Vec<Tensor<4>>,
+    pub values: Vec<Tensor<4>>,
+}
+
+impl ContextKv {
+    /// Context length.
+    pub fn len(&self) -> usize {
+        self.keys.first().map_or(0, |k| k.dims()[1])
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Its values' bytes.
+    pub fn bytes(&self) -> usize {
+        self.keys.iter().chain(&self.values).map(|t| t.dims().iter().product::<usize>() * 4).sum()
+    }
+
+    /// One batch of `rows` (each of batch 1, its own context length: its cameras and its own task's tokens),
+    /// each right-padded with zeros to the longest (the batch's context: the model reads the language columns of
+    /// its longest task, masking the others' padding out) and stacked.
+    pub fn stack(rows: &[&ContextKv]) -> ContextKv {
+        let len = rows.iter().map(|r| r.len()).max().unwrap_or(0);
+        let pad = |t: &Tensor<4>| {
+            let [b, l, h, d] = t.dims();
+            match len - l {
+                0 => t.clone(),
+                missing => Tensor::cat(vec![t.clone(), Tensor::zeros([b, missing, h, d], &t.device())], 1),
+            }
+        };
+        let layers = rows.first().map_or(0, |r| r.keys.len());
+        let stacked = |pick: fn(&ContextKv) -> &Vec<Tensor<4>>| {
+            (0..layers).map(|n| Tensor::cat(rows.iter().map(|r| pad(&pick(r)[n])).collect(), 0)).collect()
+        };
+        ContextKv { keys: stacked(|r| &r.keys), values: stacked(|r| &r.values) }
+    }
+
+    /// The same values without any autodiff graph (a cache keeps them across steps).
+    pub fn detach(self) -> ContextKv {
+        ContextKv {
+            keys: self.keys.into_iter().map(Tensor::detach).collect(),
+            values: self.values.into_iter().map(Tensor::detach).collect(),
+        }
+    }
+}
+
 /// Runs the frozen text layers over the prefix: context tokens without a graph, the state token
 /// row with one. Returns the per-layer keys/values.
 pub fn encode_prefix(
@@ -118,38 +171,87 @@ pub fn encode_prefix(
     context: Tensor<3>,
     state_token: Tensor<3>,
     layout: &PrefixLayout,
-    mut trace: Option<&mut Trace>,
+    trace: Option<&mut Trace>,
 ) -> PrefixKv {
+    let traced = trace.is_some();
+    let (context, context_inputs, context_out) = run_context(vlm, context, layout, traced);
+    let (kv, state_inputs, state_out) = run_state(vlm, &context, state_token, layout, traced);
+    if let Some(t) = trace {
+        let inputs = context_inputs.into_iter().zip(state_inputs).map(|(c, s)| Tensor::cat(vec![c, s], 1));
+        t.vlm_layer_inputs.extend(inputs);
+        t.prefix_out = Some(vlm.final_norm(Tensor::cat(vec![context_out, state_out], 1)));
+    }
+    kv
+}
+
+/// The context's keys and values through every text layer: the part of the prefix a frozen backbone computes
+/// from the frame and the task alone.
+pub fn encode_context(vlm: &Vlm, context: Tensor<3>, layout: &PrefixLayout) -> ContextKv {
+    run_context(vlm, context, layout, false).0
+}
+
+/// The prefix keys and values from the context's (computed now or kept by a cache) and the state token row.
+pub fn encode_state(vlm: &Vlm, context: &ContextKv, state_token: Tensor<3>, layout: &PrefixLayout) -> PrefixKv {
+    run_state(vlm, context, state_token, layout, false).0
+}
+
+/// The context tokens through the text layers: their keys and values, and when asked each layer's input and the
+/// last layer's output.
+fn run_context(
+    vlm: &Vlm,
+    context: Tensor<3>,
+    layout: &PrefixLayout,
+    keep_inputs: bool,
+) -> (ContextKv, Vec<Tensor<3>>, Tensor<3>) {
     let device = context.device();
     let (b, lc) = (layout.batch, layout.context_len);
-    let hd = vlm.head_dim();
-    let context_rope = Rope::new(&layout.context_positions, b, lc, hd, &device);
-    let state_rope = Rope::new(&layout.state_positions, b, 1, hd, &device);
-    let context_mask = bool_tensor(layout.context_mask.clone(), [b, lc, lc], &device);
-    let state_mask = bool_tensor(layout.state_mask.clone(), [b, 1, lc + 1], &device);
-    let (mut xc, mut xs) = (context, state_token);
-    let mut kv = PrefixKv { keys: Vec::new(), values: Vec::new() };
+    let rope = Rope::new(&layout.context_positions, b, lc, vlm.head_dim(), &device);
+    let mask = bool_tensor(layout.context_mask.clone(), [b, lc, lc], &device);
+    let mut x = context;
+    let (mut kv, mut inputs) = (ContextKv { keys: Vec::new(), values: Vec::new() }, Vec::new());
     for layer in &vlm.layers {
-        if let Some(t) = trace.as_deref_mut() {
-            t.vlm_layer_inputs.push(Tensor::cat(vec![xc.clone(), xs.clone()], 1));
+        if keep_inputs {
+            inputs.push(x.clone());
         }
-        let (qc, kc, vc) = layer.qkv(layer.input_layernorm.forward(xc.clone()));
-        let (qs, ks, vs) = layer.qkv(layer.input_layernorm.forward(xs.clone()));
-        let (qc, kc) = (context_rope.apply(qc), context_rope.apply(kc));
-        let (qs, ks) = (state_rope.apply(qs), state_rope.apply(ks));
-        let keys = Tensor::cat(vec![kc.clone(), ks], 1);
-        let values = Tensor::cat(vec![vc.clone(), vs], 1);
-        let attn_c = attention(qc, kc, vc, Some(context_mask.clone()));
-        let attn_s = attention(qs, keys.clone(), values.clone(), Some(state_mask.clone()));
-        xc = layer.finish(xc, attn_c);
-        xs = layer.finish(xs, attn_s);
+        let (q, k, v) = layer.qkv(layer.input_layernorm.forward(x.clone()));
+        let (q, k) = (rope.apply(q), rope.apply(k));
+        let attn = attention(q, k.clone(), v.clone(), Some(mask.clone()));
+        x = layer.finish(x, attn);
+        kv.keys.push(k);
+        kv.values.push(v);
+    }
+    (kv, inputs, x)
+}
+
+/// The state token row through the text layers, attending to the context's keys and values and its own: the
+/// prefix's keys and values, and when asked each layer's input and the last layer's output.
+fn run_state(
+    vlm: &Vlm,
+    context: &ContextKv,
+    state_token: Tensor<3>,
+    layout: &PrefixLayout,
+    keep_inputs: bool,
+) -> (PrefixKv, Vec<Tensor<3>>, Tensor<3>) {
+    let device = state_token.device();
+    let (b, lc) = (layout.batch, layout.context_len);
+    let rope = Rope::new(&layout.state_positions, b, 1, vlm.head_dim(), &device);
+    let mask = bool_tensor(layout.state_mask.clone(), [b, 1, lc + 1], &device);
+    let mut x = state_token;
+    let (mut kv, mut inputs) = (PrefixKv { keys: Vec::new(), values: Vec::new() }, Vec::new());
+    for (n, layer) in vlm.layers.iter().enumerate() {
+        if keep_inputs {
+            inputs.push(x.clone());
+        }
+        let (q, k, v) = layer.qkv(layer.input_layernorm.forward(x.clone()));
+        let (q, k) = (rope.apply(q), rope.apply(k));
+        let keys = Tensor::cat(vec![context.keys[n].clone(), k], 1);
+        let values = Tensor::cat(vec![context.values[n].clone(), v], 1);
+        let attn = attention(q, keys.clone(), values.clone(), Some(mask.clone()));
+        x = layer.finish(x, attn);
         kv.keys.push(keys);
         kv.values.push(values);
     }
-    if let Some(t) = trace {
-        t.prefix_out = Some(vlm.final_norm(Tensor::cat(vec![xc, xs], 1)));
-    }
-    kv
+    (kv, inputs, x)
 }
 
 /// The trainable part: expert layers, expert norm and the five flow-matching projections.

@@ -2,6 +2,7 @@
 
 use burn::tensor::Device;
 use fedvla_policy::batch::Prepared;
+use fedvla_policy::vlm_with_expert::ContextKv;
 use fedvla_policy::weights::init_random;
 use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
 
@@ -116,4 +117,41 @@ fn new_weights_keep_the_optimizer_state_until_it_is_reset() {
 #[test]
 fn a_correction_shifts_each_step_by_lr_times_itself() {
     rules::a_correction_shifts_the_step_by_lr_times_itself(&Device::flex().autodiff());
+}
+
+/// The frozen-feature cache's arithmetic: each row's context keys and values computed alone (its own language
+/// length), padded and stacked, give the loss and every gradient of the whole forward pass to 1e-6, over three
+/// steps (each moving the trainable tensors the next one starts from).
+#[test]
+fn cached_context_rows_give_the_loss_and_gradients_of_the_full_forward() {
+    let cfg = SmolVlaConfig::tiny();
+    assert!(cfg.backbone_frozen());
+    let weights = init_random(&cfg.param_specs(), 1);
+    let device = Device::flex().autodiff();
+    let mut batch = Batch::random(&cfg, 3, 4);
+    // Rows of different task lengths: row 0 uses 2 columns, row 1 all, row 2 four.
+    let len = batch.lang_len;
+    for (n, used) in [(0, 2), (2, 4)] {
+        for i in used..len {
+            batch.lang_mask[n * len + i] = false;
+            batch.lang_tokens[n * len + i] = 0;
+        }
+    }
+    let mut full = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+    let mut cached = Trainer::new(&cfg, &weights, &device, 5).unwrap();
+    let contexts: Vec<ContextKv> = (0..3).map(|n| cached.context_kv(&batch.rows(&[n])).unwrap()).collect();
+    assert!(contexts[0].len() < contexts[1].len(), "rows keep their own language length");
+    let stacked = ContextKv::stack(&contexts.iter().collect::<Vec<_>>());
+    for step in 0..3 {
+        let (noise, time) = full.sample_noise_and_time(3);
+        let (a, grads_full) = full.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
+        let (b, grads_cached) = cached.train_step_from_with(&batch, Some(&stacked), noise, &time, 1e-3).unwrap();
+        assert!((a.loss - b.loss).abs() <= 1e-6, "step {step}: loss {} against {}", a.loss, b.loss);
+        assert_eq!(grads_full.keys().collect::<Vec<_>>(), grads_cached.keys().collect::<Vec<_>>());
+        for (name, g) in &grads_full {
+            for (x, y) in g.data.iter().zip(&grads_cached[name].data) {
+                assert!((x - y).abs() <= 1e-6, "step {step}, {name}: {x} against {y}");
+            }
+        }
+    }
 }

@@ -3,7 +3,7 @@
 //! servers, TLS ([`Dialer`])) and [`volunteer`], what `fedvla join` and every client of `fedvla simulate` run:
 //! the same downloads and round loop as the browser's, on a server shard or on the volunteer's own dataset.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -13,6 +13,7 @@ use fedvla_federation::{
     BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, OwnDataset, Video,
     WorkloadKind, fnv1a, routes, run_client,
 };
+use fedvla_learner::feature_cache::DEFAULT_SPILL_BYTES;
 use fedvla_learner::volunteer::{
     Fetch, fetch_own_data_setup, fetch_setup, fetch_tokenizer, policy_config, smolvla_volunteer, smolvla_volunteer_on,
     volunteer_seed,
@@ -258,7 +259,7 @@ pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> R
         }
         WorkloadKind::Smolvla => {
             let device = Device::flex().autodiff();
-            let (mut trainer, own) = match data {
+            let (trainer, own) = match data {
                 VolunteerData::Shard(_) => {
                     (smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?, None)
                 }
@@ -275,12 +276,25 @@ pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> R
                 }
             };
             options.data = Some(trainer.examples().data_report(own));
+            // The frozen weights are named by their content hash (the last segment of their URL).
+            let frozen = setup.frozen_url.as_deref().and_then(|url| url.rsplit('/').next()).unwrap_or("unnamed");
+            let mut trainer = trainer.spill_feature_cache(&feature_cache_dir(), frozen, DEFAULT_SPILL_BYTES);
             if poisons_labels(attack) {
                 trainer.shuffle_labels(fnv1a(name));
             }
             run_as(&mut transport, FilmedRollouts(trainer), attack, &options, on_event).await
         }
     }
+}
+
+/// Where native volunteers spill their frozen-feature caches: `$XDG_CACHE_HOME/fedvla/features`, or
+/// `~/.cache/fedvla/features`, or the temporary directory.
+fn feature_cache_dir() -> PathBuf {
+    let base = std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".cache")))
+        .unwrap_or_else(std::env::temp_dir);
+    base.join("fedvla").join("features")
 }
 
 /// Whether `attack` poisons the volunteer's data before it trains.

@@ -131,6 +131,11 @@ impl ShardExamples {
         DataReport { own, moments }
     }
 
+    /// The SHA-256 of the shard's content (frames, vectors, tokens), as its manifest records it.
+    pub fn content_sha256(&self) -> &str {
+        &self.shard.manifest.content_sha256
+    }
+
     /// The frames of its training episodes.
     pub fn train_examples(&self) -> u64 {
         self.train_rows.len() as u64

@@ -80,6 +80,15 @@ impl SmolVlaTrainer {
         self
     }
 
+    /// Lets the frozen-feature cache spill rows beyond its memory budget to files under `base` (see
+    /// [`FeatureCache::with_spill`]); `frozen` is the frozen weights' content hash (the server names them by it).
+    #[cfg(not(target_arch = "wasm32"))]
+    pub fn spill_feature_cache(mut self, base: &std::path::Path, frozen: &str, budget_bytes: u64) -> Self {
+        let shard = self.examples.content_sha256().to_owned();
+        self.cache = self.cache.map(|cache| cache.with_spill(base, frozen, &shard, budget_bytes));
+        self
+    }
+
     /// The frozen-feature cache, when it has one.
     pub fn feature_cache(&self) -> Option<&FeatureCache> {
         self.cache.as_ref()

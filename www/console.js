@@ -159,6 +159,7 @@ function render(snapshot) {
   rows.replaceChildren();
   snapshot.clients.forEach(upsertClientRow);
   renderCharts(snapshot);
+  renderTasks(snapshot.metrics);
   renderTimeline(snapshot);
   renderGallery(snapshot.gallery);
 }
@@ -317,6 +318,42 @@ function successSeries(gallery) {
     { className: "global", points: server, line: true },
     { className: "client", points: clients, line: false },
   ];
+}
+
+/// The last evaluated round's figures per task (`global.heldout_by_task`, `global.success_by_task`) and its
+/// language check (`global.language_check`); hidden for a run of one task, whose lines carry none.
+function renderTasks(lines) {
+  const last = (key) => [...lines].reverse().find((line) => line.global?.[key])?.global?.[key];
+  const heldOut = last("heldout_by_task") ?? [];
+  const success = last("success_by_task") ?? [];
+  const check = last("language_check");
+  const names = [...new Set([...heldOut.map((t) => t.task), ...success.map((t) => t.task)])];
+  $("#tasks").hidden = names.length === 0 && !check;
+  const rows = names.map((name) => {
+    const h = heldOut.find((t) => t.task === name);
+    const s = success.find((t) => t.task === name);
+    const row = document.createElement("tr");
+    const texts = [
+      name,
+      formatNumber(h?.heldout_loss),
+      formatNumber(h?.action_mse),
+      h ? String(h.heldout_examples) : "-",
+      s ? `${s.successes}/${s.episodes}` : "-",
+    ];
+    for (const text of texts) {
+      const cell = document.createElement("td");
+      cell.textContent = text;
+      row.append(cell);
+    }
+    return row;
+  });
+  $("#task-figures tbody").replaceChildren(...rows);
+  const interval = (i) => `[${i.ci95_low.toFixed(2)}, ${i.ci95_high.toFixed(2)}]`;
+  $("#language-check").textContent = check
+    ? `Language check (${check.task}): told the right goal ${check.right_successes}/${check.episodes} ` +
+      `${interval(check.right)}, told another goal ${check.wrong_successes}/${check.episodes} ` +
+      `${interval(check.wrong)} (Wilson 95%).`
+    : "";
 }
 
 function isNumber(value) {

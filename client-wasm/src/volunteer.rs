@@ -219,7 +219,8 @@ impl LocalTrainer for BrowserTrainer {
         let Some(policy) = self.inner.sim_policy()? else { return Ok(Vec::new()) };
         let mut outputs = Vec::new();
         for episode in 0..request.episodes {
-            let mut run = Episode::new(&policy, request.first_seed + u64::from(episode), request.max_frames as usize);
+            let (task, seed) = (policy.tasks().task_of(episode as usize), request.first_seed + u64::from(episode));
+            let mut run = Episode::new(&policy, task, seed, request.max_frames as usize)?;
             self.view.draw(run.scene()).map_err(boxed)?;
             let recorder = Recorder::start(&self.view, ROLLOUT_FPS).map_err(boxed)?;
             let start = now_seconds();
@@ -236,7 +237,7 @@ impl LocalTrainer for BrowserTrainer {
             }
             let video = recorder.finish(format!("episode_{episode}.webm")).await.map_err(boxed)?;
             let record = rollout_episode(episode, &run.result());
-            self.status.send("rolled_out", json!({ "episode": episode, "success": record.success, "length": record.length, "video_bytes": video.bytes.len() }));
+            self.status.send("rolled_out", json!({ "episode": episode, "task": task.name(), "success": record.success, "length": record.length, "video_bytes": video.bytes.len() }));
             outputs.push(RolloutOutput { episode: record, video: Some(video) });
         }
         Ok(outputs)

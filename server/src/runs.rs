@@ -251,15 +251,12 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
         let sim = run_dir.save_model(line.round, global, &NamedTensors::new(), &exporters, &config)?;
         line.model_version = line.round;
         line.model_crc32 = global.checksum();
+        let (loss, success) = (eval.as_ref().map(|e| e.heldout_loss), sim.as_ref().map(|s| s.success_rate));
         line.global = (eval.is_some() || sim.is_some()).then_some(GlobalMetrics { eval, sim });
         line.timestamp = timestamp();
         run_dir.append_metrics(&line)?;
-        if let Some(eval) = eval {
-            let success = sim.map(|s| s.success_rate);
-            bars.println(format!(
-                "round {}: held-out loss {:.4}, sim success {success:?}",
-                line.round, eval.heldout_loss
-            ));
+        if let Some(loss) = loss {
+            bars.println(format!("round {}: held-out loss {loss:.4}, sim success {success:?}", line.round));
         }
         Ok(())
     };

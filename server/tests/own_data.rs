@@ -221,7 +221,7 @@ fn own_datasets_federate_beside_a_shard_and_never_leave_their_machines() {
         assert_eq!(client.examples, client.data.map(DataSource::weight));
     }
     // It learns: the server's held-out loss falls from the initial model.
-    let loss = |line: &MetricsLine| line.global.as_ref().and_then(|g| g.eval).unwrap().heldout_loss;
+    let loss = |line: &MetricsLine| line.global.as_ref().and_then(|g| g.eval.as_ref()).unwrap().heldout_loss;
     assert!(loss(last) < loss(&lines[0]), "held-out loss {} -> {}", loss(&lines[0]), loss(last));
 
     // Federated statistics equal the statistics of the pooled data: the own datasets and the shard's episodes.

@@ -501,3 +501,80 @@ fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so
     assert_eq!(second_round(true), kept);
     assert_eq!(second_round(false), reset);
 }
+
+/// A federation on a dataset of all four sim tasks, each task whole on one client (`partitioning = "by-task"`):
+/// every evaluated round's metrics line carries the held-out loss and action MSE per task and the sim success per
+/// task, the rollouts (the server's and the clients') cycle through the tasks each told its own instruction, and
+/// the pick-colour episodes are rolled out again told another colour (the language check, both rates recorded).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_multi_task_federation_reports_every_task_and_the_language_check() {
+    use fedvla_sim::{Arrangement, TaskKind};
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("so100");
+    let options =
+        GenDataOptions { episodes: 20, seed: 0, image_size: 32, tasks: TaskKind::ALL.to_vec(), ..Default::default() };
+    generate_dataset(&data, &options, |_| {}).unwrap();
+    let cfg = config(&data, &tmp.path().join("run"), 3)
+        .with_overrides("partitioning=by-task rollout-episodes=4 client-rollout-episodes=4 max-rollout-videos=4 rollout-max-frames=20")
+        .unwrap();
+
+    // The volunteers' token table holds every instruction of the four tasks, the pick-colour ones told apart.
+    let workload = SmolVlaWorkload::prepare(&cfg, &tmp.path().join("shards")).unwrap();
+    let offer = workload.volunteer_offer().unwrap();
+    let names: Vec<&str> = TaskKind::ALL.iter().map(|t| t.name()).collect();
+    assert_eq!(offer.rollout_tasks.tasks, names);
+    let picks: std::collections::BTreeSet<&Vec<u32>> = offer
+        .rollout_tasks
+        .instructions
+        .iter()
+        .filter(|i| TaskKind::PickColour.instructions().contains(&i.instruction))
+        .map(|i| &i.ids)
+        .collect();
+    assert!(picks.len() >= 2, "right and wrong colours tokenise apart: {picks:?}");
+
+    let run = run_with(cfg).await;
+    let lines = metrics(&run.dir);
+    for line in &lines {
+        let global = &line["global"];
+        let by_task = global["heldout_by_task"].as_array().unwrap_or_else(|| panic!("{global}"));
+        assert!(by_task.len() >= 2, "{global}");
+        let rows: u64 = by_task.iter().map(|t| t["heldout_examples"].as_u64().unwrap()).sum();
+        assert_eq!(rows, global["heldout_examples"].as_u64().unwrap());
+        for task in by_task {
+            assert!(names.contains(&task["task"].as_str().unwrap()), "{task}");
+            assert!(task["heldout_loss"].as_f64().unwrap().is_finite() && task["action_mse"].as_f64().is_some());
+        }
+        let success: Vec<&str> =
+            global["success_by_task"].as_array().unwrap().iter().map(|t| t["task"].as_str().unwrap()).collect();
+        assert_eq!(success, names, "{global}");
+        let check = &global["language_check"];
+        assert_eq!((check["task"].as_str(), check["episodes"].as_u64()), (Some("pick-colour"), Some(1)), "{global}");
+        for rate in ["right", "wrong"] {
+            assert!(check[rate]["ci95_low"].as_f64().unwrap() <= check[rate]["ci95_high"].as_f64().unwrap());
+        }
+    }
+
+    // The server's rollouts: episode k on the k-th task; the pick-colour one told another colour on its seed.
+    let results: RolloutResults = serde_json::from_str(
+        &std::fs::read_to_string(run.dir.join("global_model/round_2/rollouts/results.json")).unwrap(),
+    )
+    .unwrap();
+    let tasks: Vec<Option<&str>> = results.episodes.iter().map(|e| e.task.as_deref()).collect();
+    assert_eq!(tasks, names.iter().map(|n| Some(*n)).collect::<Vec<_>>());
+    let [wrong] = results.told_wrong.as_slice() else { panic!("{:?}", results.told_wrong) };
+    let right = Arrangement::from_seed(TaskKind::PickColour, wrong.seed).instruction();
+    assert_ne!(wrong.instruction, right);
+    assert!(TaskKind::PickColour.instructions().contains(&wrong.instruction));
+    let check = results.language_check.as_ref().unwrap();
+    assert_eq!(check.right_successes, u64::from(results.episodes[3].success));
+    assert_eq!(check.wrong_successes, u64::from(wrong.success));
+
+    // The clients' rollouts cycle through the tasks too.
+    for client in std::fs::read_dir(run.dir.join("evaluate/round_1")).unwrap() {
+        let dir = client.unwrap().path();
+        let results: RolloutResults =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("results.json")).unwrap()).unwrap();
+        let tasks: Vec<Option<&str>> = results.episodes.iter().map(|e| e.task.as_deref()).collect();
+        assert_eq!(tasks, names.iter().map(|n| Some(*n)).collect::<Vec<_>>(), "{}", dir.display());
+    }
+}

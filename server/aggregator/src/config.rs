@@ -79,6 +79,12 @@ pub enum Partitioning {
     /// the cube starts, around the arm, then cut into contiguous runs): a volunteer whose table is always set
     /// up the same way.
     ByLayout,
+    /// Each task of a multi-task dataset goes whole to one client (tasks dealt round-robin in a seeded order): a
+    /// volunteer who records only its own task.
+    ByTask,
+    /// Per task, the clients' shares drawn from Dirichlet(`partition-alpha`): small alpha, each task mostly on
+    /// few clients; large alpha, every client near the same mix of tasks.
+    Dirichlet,
 }
 
 /// How `simulate`'s attackers corrupt their updates (see `fedvla_server::attack`).
@@ -209,8 +215,10 @@ pub struct RunConfig {
     pub dataset_tasks: Vec<TaskKind>,
     pub num_clients: usize,
     pub partitioning: Partitioning,
+    pub partition_alpha: f64,
     pub federated_stats: bool,
     pub own_data_max_examples: u64,
+    pub own_datasets: Vec<String>,
     pub model_size: String,
     pub init_policy: String,
     pub export_dtype: ExportDtype,
@@ -230,6 +238,7 @@ pub struct RunConfig {
     pub tls_key: String,
     pub max_frame_bytes: usize,
     pub auth_token: String,
+    pub allowed_keys: String,
     pub operator_token: String,
     pub max_connections: usize,
     pub header_read_timeout_ms: u64,
@@ -346,6 +355,11 @@ impl RunConfig {
     /// The token clients must present (`auth-token`), or `None` for a public run.
     pub fn auth_token(&self) -> Option<&str> {
         Some(self.auth_token.as_str()).filter(|t| !t.is_empty())
+    }
+
+    /// The allow-list of a closed federation's volunteer keys (`allowed-keys`), or `None` to admit any key.
+    pub fn allowed_keys_file(&self) -> Option<&Path> {
+        (!self.allowed_keys.is_empty()).then(|| Path::new(&self.allowed_keys))
     }
 
     /// The certificate chain and private key files the server presents over TLS (`tls-cert`, `tls-key`), or
@@ -537,6 +551,12 @@ impl RunConfig {
         }
         if !(self.dataset_action_noise.is_finite() && (0.0..=20.0).contains(&self.dataset_action_noise)) {
             return fail(format!("dataset-action-noise must be in [0, 20] degrees, got {}", self.dataset_action_noise));
+        }
+        if !(self.partition_alpha.is_finite() && self.partition_alpha > 0.0) {
+            return fail(format!("partition-alpha must be a positive number, got {}", self.partition_alpha));
+        }
+        if !self.own_datasets.is_empty() && self.workload != WorkloadKind::Smolvla {
+            return fail("own-datasets needs the smolvla workload (linreg has no datasets)".into());
         }
         if self.dataset_tasks.is_empty() {
             return fail("dataset-tasks must name at least one task (`fedvla tasks` lists them)".into());

@@ -1,5 +1,5 @@
 //! The federation's aggregator, with no HTTP in it: the run configuration, the run directory and the records it
-//! holds, the round lifecycle ([`coordinator`]: sampling, collecting, aggregating through the strategy, evaluating,
+//! holds (and the intervals its figures are stated with, [`stats`]), the round lifecycle ([`coordinator`]: sampling, collecting, aggregating through the strategy, evaluating,
 //! persisting), the operator's controls, the events it reports, and the registry of volunteers and their shards.
 //! The HTTP/WebSocket app (`fedvla-app`) feeds it and watches it; workloads (`fedvla-workloads`) plug into it
 //! through [`parts::ServerParts`].
@@ -13,3 +13,4 @@ pub mod records;
 pub mod registry;
 pub mod run_dir;
 pub mod sessions;
+pub mod stats;

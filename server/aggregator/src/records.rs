@@ -2,8 +2,9 @@
 //! with a record per sampled client) and a model's sim rollouts ([`RolloutResults`], every `results.json`). The
 //! coordinator, `fedvla train`, `fedvla eval` and the server's rollouts write them; resume, the console
 //! (www/console.js reads these field names: `round`, `attempt`, `seconds`, `clients[].accepted`,
-//! `clients[].train_loss`, `global.heldout_loss`, `global.action_mse`, `settings`; `results.json`'s
-//! `success_rate` and `model_version`), `simulate`'s headline and the experiment reports read them.
+//! `clients[].train_loss`, `global.heldout_loss`, `global.action_mse`, `global.heldout_by_task`,
+//! `global.success_by_task`, `global.language_check`, `settings`; `results.json`'s `success_rate` and
+//! `model_version`), `simulate`'s headline and the experiment reports read them.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -12,6 +13,7 @@ use fedvla_federation::{EvalMetrics, PrivacyReport, RolloutEpisode};
 use serde::{Deserialize, Serialize};
 
 use crate::control::Settings;
+use crate::stats::Interval;
 
 /// A run's metrics, one [`MetricsLine`] a line.
 pub const METRICS_FILE: &str = "metrics.jsonl";
@@ -80,11 +82,73 @@ pub struct GlobalMetrics {
 }
 
 /// A model's success in the sim on held-out layouts.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SimFigures {
     pub success_rate: f64,
     pub rollout_episodes: u64,
     pub rollout_mean_length: f64,
+    /// Each task's share, in the order the rollouts cycle through them (rollouts of more than one task).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub success_by_task: Vec<TaskSuccess>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub language_check: Option<LanguageCheck>,
+}
+
+/// One task's episodes of a model's rollouts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskSuccess {
+    /// Its name (`fedvla tasks`).
+    pub task: String,
+    pub episodes: u64,
+    pub successes: u64,
+    pub success_rate: f64,
+}
+
+/// The language check of a model's rollouts: every episode of the task whose instruction decides the goal
+/// (pick-colour) rolled out twice on the same layout with the same sampling noise, told its own instruction and
+/// told another goal's ([`ToldWrong`]), success judged by the episode's own goal both times. A policy that ignores
+/// the instruction scores the same on both; one that follows it fails when told wrong.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LanguageCheck {
+    pub task: String,
+    pub episodes: u64,
+    pub right_successes: u64,
+    pub wrong_successes: u64,
+    /// Wilson 95% intervals of the two success rates.
+    pub right: Interval,
+    pub wrong: Interval,
+}
+
+impl std::fmt::Display for LanguageCheck {
+    /// Both success rates with their intervals, in words.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "language check ({}): told the right goal {}/{} [{:.2}, {:.2}], told another goal {}/{} [{:.2}, {:.2}] \
+             (Wilson 95%)",
+            self.task,
+            self.right_successes,
+            self.episodes,
+            self.right.ci95_low,
+            self.right.ci95_high,
+            self.wrong_successes,
+            self.episodes,
+            self.wrong.ci95_low,
+            self.wrong.ci95_high
+        )
+    }
+}
+
+/// An episode of the language check rolled out again, told another goal's instruction.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ToldWrong {
+    /// The episode it repeats (its index in the rollouts).
+    pub episode: u32,
+    pub seed: u64,
+    pub instruction: String,
+    /// Whether the episode's own goal was met all the same.
+    pub success: bool,
+    pub length: u32,
 }
 
 /// What a client trains on, as the server knows it: the example count of a shard it built is one it verified;
@@ -170,6 +234,11 @@ pub struct RolloutResults {
     /// Episodes whose video could not be written; their results still count.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub video_errors: Vec<VideoError>,
+    /// The language check's second rollouts, told the wrong instruction, and what they add up to.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub told_wrong: Vec<ToldWrong>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub language_check: Option<LanguageCheck>,
 }
 
 impl RolloutResults {
@@ -183,15 +252,67 @@ impl RolloutResults {
                 Some(episodes.iter().map(|e| f64::from(e.length)).sum::<f64>() / n),
             ),
         };
-        Self { policy, model_version, episodes, success_rate, mean_length, video_errors: Vec::new() }
+        Self {
+            policy,
+            model_version,
+            episodes,
+            success_rate,
+            mean_length,
+            video_errors: Vec::new(),
+            told_wrong: Vec::new(),
+            language_check: None,
+        }
     }
 
-    /// The figures a metrics line carries.
+    /// With the language check of `told_wrong` (none without them): each compared with the episode it repeats.
+    pub fn with_language_check(mut self, told_wrong: Vec<ToldWrong>) -> Self {
+        let repeated: Vec<&RolloutEpisode> =
+            told_wrong.iter().filter_map(|w| self.episodes.iter().find(|e| e.episode == w.episode)).collect();
+        let task = repeated.first().and_then(|e| e.task.clone());
+        let episodes = told_wrong.len() as u64;
+        let right_successes = repeated.iter().filter(|e| e.success).count() as u64;
+        let wrong_successes = told_wrong.iter().filter(|w| w.success).count() as u64;
+        let intervals = (Interval::wilson(right_successes, episodes), Interval::wilson(wrong_successes, episodes));
+        self.language_check = match (task, intervals) {
+            (Some(task), (Some(right), Some(wrong))) => {
+                Some(LanguageCheck { task, episodes, right_successes, wrong_successes, right, wrong })
+            }
+            _ => None,
+        };
+        self.told_wrong = told_wrong;
+        self
+    }
+
+    /// Each task's episodes, in the order the tasks first appear (episodes that name no task are left out).
+    pub fn by_task(&self) -> Vec<TaskSuccess> {
+        let mut out: Vec<TaskSuccess> = Vec::new();
+        for episode in &self.episodes {
+            let Some(task) = &episode.task else { continue };
+            let index = match out.iter().position(|t| &t.task == task) {
+                Some(index) => index,
+                None => {
+                    out.push(TaskSuccess { task: task.clone(), episodes: 0, successes: 0, success_rate: 0.0 });
+                    out.len() - 1
+                }
+            };
+            out[index].episodes += 1;
+            out[index].successes += u64::from(episode.success);
+        }
+        for task in &mut out {
+            task.success_rate = task.successes as f64 / task.episodes as f64;
+        }
+        out
+    }
+
+    /// The figures a metrics line carries: per task only where the rollouts set more than one.
     pub fn figures(&self) -> Option<SimFigures> {
+        let by_task = self.by_task();
         Some(SimFigures {
             success_rate: self.success_rate?,
             rollout_episodes: self.episodes.len() as u64,
             rollout_mean_length: self.mean_length?,
+            success_by_task: if by_task.len() > 1 { by_task } else { Vec::new() },
+            language_check: self.language_check.clone(),
         })
     }
 }

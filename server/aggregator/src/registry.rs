@@ -9,7 +9,7 @@ use std::sync::{Mutex, MutexGuard};
 
 use bytes::Bytes;
 use fedvla_federation::protocol::MAX_NAME_BYTES;
-use fedvla_federation::{DatasetSignature, ErrorCode, NormalizationStats, OwnDataset, WorkloadKind};
+use fedvla_federation::{DatasetSignature, ErrorCode, NormalizationStats, OwnDataset, RolloutTasks, WorkloadKind};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -41,9 +41,8 @@ pub struct VolunteerOffer {
     pub policy: serde_json::Value,
     /// The frozen tensors as safetensors, when the workload has any.
     pub frozen: Option<Bytes>,
-    /// The sim task's token ids and mask.
-    pub rollout_task_tokens: Vec<u32>,
-    pub rollout_task_mask: Vec<bool>,
+    /// The sim tasks rollouts cycle through, with their instructions' token ids.
+    pub rollout_tasks: RolloutTasks,
     /// What a volunteer's own dataset must match; `None`: the run takes no own datasets.
     pub signature: Option<DatasetSignature>,
     /// The dataset's normalisation statistics, when the workload normalises.
@@ -60,8 +59,7 @@ impl VolunteerOffer {
             shards,
             policy: serde_json::Value::Null,
             frozen: None,
-            rollout_task_tokens: Vec::new(),
-            rollout_task_mask: Vec::new(),
+            rollout_tasks: RolloutTasks::default(),
             signature: None,
             norm_stats: None,
             tokenizer: None,

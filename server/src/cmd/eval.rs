@@ -25,10 +25,12 @@ pub struct Args {
     /// Evaluate the scripted expert instead of a policy.
     #[arg(long)]
     expert: bool,
-    /// The task the expert is set (`fedvla tasks` lists them); default cube-in-bowl, the one task policies are
-    /// rolled out on.
-    #[arg(long, conflicts_with = "policy", value_parser = TaskKind::from_name)]
-    task: Option<TaskKind>,
+    /// The task the episodes set (`fedvla tasks` lists them; default cube-in-bowl). A policy takes it repeated:
+    /// episode i on the i-th modulo their number, each told its own instruction, and the episodes of a task whose
+    /// instruction decides the goal (pick-colour) again told another goal's (the language check). The expert
+    /// takes one.
+    #[arg(long, value_parser = TaskKind::from_name)]
+    task: Vec<TaskKind>,
     /// Number of episodes; episode i runs on sim seed `--seed + i`.
     #[arg(long)]
     episodes: usize,
@@ -59,11 +61,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         max_frames: args.max_frames,
         video_size: (args.video_size > 0).then_some(args.video_size),
     };
-    let loaded = args.policy.as_deref().map(load_policy).transpose()?;
+    let tasks = if args.task.is_empty() { vec![TaskKind::CubeInBowl] } else { args.task.clone() };
+    let loaded = args.policy.as_deref().map(|dir| load_policy(dir, &tasks)).transpose()?;
     let source = args.policy.as_ref().map(|p| p.display().to_string()).unwrap_or_default();
-    let agent = match &loaded {
-        Some(policy) => Agent::Policy { policy, source: &source },
-        None => Agent::Expert { task: args.task.unwrap_or(TaskKind::CubeInBowl) },
+    let agent = match (&loaded, tasks.as_slice()) {
+        (Some(policy), _) => Agent::Policy { policy, source: &source },
+        (None, [task]) => Agent::Expert { task: *task },
+        (None, _) => anyhow::bail!("the expert is evaluated on one task at a time: give --task once"),
     };
 
     let bar = ProgressBar::new(args.episodes as u64);
@@ -87,6 +91,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         summary.success_rate.unwrap_or(0.0) * 100.0,
         summary.mean_length.unwrap_or(0.0),
     );
+    if summary.by_task().len() > 1 {
+        for task in summary.by_task() {
+            println!("  {}: {}/{} succeeded", task.task, task.successes, task.episodes);
+        }
+    }
+    if let Some(check) = &summary.language_check {
+        println!("{check}");
+    }
     println!(
         "{frames} frames in {:.1} s ({:.1} ms per frame, acting, simulating and filming)",
         elapsed.as_secs_f64(),
@@ -106,8 +118,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A policy directory as a sim policy on the CPU (burn's flex backend).
-fn load_policy(dir: &std::path::Path) -> anyhow::Result<SimPolicy> {
+/// A policy directory as a sim policy of `tasks` on the CPU (burn's flex backend).
+fn load_policy(dir: &std::path::Path, tasks: &[TaskKind]) -> anyhow::Result<SimPolicy> {
     let policy = PolicyDir::load(dir).with_context(|| format!("loading policy {}", dir.display()))?;
     let stats = policy.stats.clone().with_context(|| {
         format!("{}: no normalisation statistics (policy_preprocessor/postprocessor files)", dir.display())
@@ -115,5 +127,5 @@ fn load_policy(dir: &std::path::Path) -> anyhow::Result<SimPolicy> {
     let tokenizer = policy
         .tokenizer()?
         .with_context(|| format!("{}: no tokenizer.json in the policy's backbone folder", dir.display()))?;
-    Ok(SimPolicy::new(&policy.cfg, &policy.weights, stats, &tokenizer, &Device::flex())?)
+    Ok(SimPolicy::new(&policy.cfg, &policy.weights, stats, &tokenizer, tasks, &Device::flex())?)
 }

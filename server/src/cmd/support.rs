@@ -120,19 +120,29 @@ pub async fn shutdown_signal() {
 }
 
 /// Prints the global held-out loss (and sim success) of the first and the last evaluated round, the run's
-/// headline.
+/// headline; for a run of several tasks, the last round's figures per task and its language check.
 pub fn print_headline(run: &Path) -> anyhow::Result<()> {
     let lines = read_metrics(run)?;
-    let evaluated: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.eval?))).collect();
+    let evaluated: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.eval.as_ref()?))).collect();
     if let (Some((r0, first)), Some((rn, last))) = (evaluated.first(), evaluated.last()) {
         println!("global held-out loss: round {r0} {:.4} -> round {rn} {:.4}", first.heldout_loss, last.heldout_loss);
+        for task in &last.heldout_by_task {
+            let mse = task.action_mse.map_or(String::new(), |mse| format!(", action MSE {mse:.3}"));
+            println!("  {}: held-out loss {:.4}{mse} ({} rows)", task.task, task.heldout_loss, task.heldout_examples);
+        }
     }
-    let rolled_out: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.sim?))).collect();
+    let rolled_out: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.sim.as_ref()?))).collect();
     if let (Some((r0, first)), Some((rn, last))) = (rolled_out.first(), rolled_out.last()) {
         println!(
             "sim success rate on held-out layouts: round {r0} {:.2} -> round {rn} {:.2} ({} episodes)",
             first.success_rate, last.success_rate, last.rollout_episodes
         );
+        for task in &last.success_by_task {
+            println!("  {}: {}/{} succeeded", task.task, task.successes, task.episodes);
+        }
+        if let Some(check) = &last.language_check {
+            println!("  {check}");
+        }
     }
     Ok(())
 }

@@ -8,7 +8,8 @@ pub mod config;
 pub mod plot;
 pub mod report;
 mod runner;
-pub mod stats;
+/// The intervals of a report, shared with the language check of every sim evaluation (`results.json`).
+pub use fedvla_aggregator::stats;
 
 pub use config::{Arm, ExperimentConfig, FINAL_FILE, FinalEvaluation, Mode, read_final};
 pub use runner::run;

@@ -1,5 +1,6 @@
-//! An experiment's report from its finished runs: `report.json` ([`Report`]), `report.md` (its table) and the
-//! PNG plots of held-out loss and sim success per round (mean and 95% band per arm).
+//! An experiment's report from its finished runs: `report.json` ([`Report`]), `report.md` (its tables: the arms,
+//! and for runs of several tasks each task's figures and the language check) and the PNG plots of held-out loss
+//! and sim success per round (mean and 95% band per arm).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -11,8 +12,8 @@ use serde::{Deserialize, Serialize};
 use super::config::{ExperimentConfig, FINAL_FILE, Mode, read_final};
 use super::plot::{Curve, plot_curves};
 use super::stats::Interval;
-use fedvla_aggregator::records::read_metrics;
-use fedvla_federation::PrivacyReport;
+use fedvla_aggregator::records::{RolloutResults, read_metrics};
+use fedvla_federation::{PrivacyReport, TaskHeldOut};
 
 pub const REPORT_JSON: &str = "report.json";
 pub const REPORT_MD: &str = "report.md";
@@ -48,6 +49,35 @@ pub struct ArmReport {
     pub ratio_to_centralized: Option<Ratio>,
     /// Arms under client-level DP: the privacy their rounds spent.
     pub privacy: Option<ArmPrivacy>,
+    /// Runs of several tasks: each task's last held-out figures and final sim success.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub tasks: Vec<TaskReport>,
+    /// The language check of every run's final evaluation, pooled.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub language_check: Option<PooledLanguageCheck>,
+}
+
+/// One task's figures in an arm: the last round's held-out loss and action MSE (mean and Student-t interval over
+/// seeds), and its final sim episodes pooled (Wilson interval).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskReport {
+    pub task: String,
+    pub heldout_loss: Option<Interval>,
+    pub action_mse: Option<Interval>,
+    pub episodes: u64,
+    pub successes: u64,
+    pub success_pooled: Option<Interval>,
+}
+
+/// The language checks of an arm's runs pooled: successes told the right goal and told another, Wilson intervals.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PooledLanguageCheck {
+    pub task: String,
+    pub episodes: u64,
+    pub right_successes: u64,
+    pub wrong_successes: u64,
+    pub right: Interval,
+    pub wrong: Interval,
 }
 
 /// The privacy a DP arm's rounds spent. The accountant's epsilon depends only on the sampling rate, the noise
@@ -98,6 +128,9 @@ struct RunFigures {
     curve: Vec<CurvePoint>,
     /// Every round's privacy report, for runs under client-level DP.
     privacy: Vec<(u64, PrivacyReport)>,
+    /// The last evaluated round's held-out figures per task, and the final evaluation.
+    heldout_by_task: Vec<TaskHeldOut>,
+    final_sim: RolloutResults,
 }
 
 /// One evaluated round of a run: (round, held-out loss, the round's sim success rate where it was rolled out).
@@ -109,13 +142,13 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         .iter()
         .filter_map(|l| {
             let g = l.global.as_ref()?;
-            Some((l.round, g.eval?.heldout_loss, g.sim.map(|s| s.success_rate)))
+            Some((l.round, g.eval.as_ref()?.heldout_loss, g.sim.as_ref().map(|s| s.success_rate)))
         })
         .collect();
     let last = metrics
         .iter()
         .rev()
-        .find_map(|l| l.global.as_ref()?.eval)
+        .find_map(|l| l.global.as_ref()?.eval.clone())
         .with_context(|| format!("{}: no evaluated round", run.display()))?;
     let final_eval = read_final(run)?;
     let episodes = &final_eval.sim.episodes;
@@ -131,6 +164,8 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         train_seconds: final_eval.train_seconds,
         curve,
         privacy: metrics.iter().filter_map(|l| Some((l.round, l.privacy?))).filter(|(round, _)| *round > 0).collect(),
+        heldout_by_task: last.heldout_by_task.clone(),
+        final_sim: final_eval.sim,
     })
 }
 
@@ -186,6 +221,8 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
                 _ => None,
             },
             privacy: arm_privacy(&runs[0]),
+            tasks: task_reports(runs),
+            language_check: pooled_language_check(runs),
         });
     }
     let report =
@@ -221,6 +258,62 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         &curves(|p| p.2),
     )?;
     Ok(report)
+}
+
+/// Each task's figures over an arm's runs, in the order the first run's evaluation names them; none for runs of
+/// one task.
+fn task_reports(runs: &[RunFigures]) -> Vec<TaskReport> {
+    let mut names: Vec<String> = Vec::new();
+    for run in runs {
+        let tasks = run.final_sim.by_task().into_iter().map(|t| t.task);
+        for name in run.heldout_by_task.iter().map(|t| t.task.clone()).chain(tasks) {
+            if !names.contains(&name) {
+                names.push(name);
+            }
+        }
+    }
+    if names.len() < 2 {
+        return Vec::new();
+    }
+    names
+        .into_iter()
+        .map(|task| {
+            let held_out: Vec<&TaskHeldOut> =
+                runs.iter().filter_map(|r| r.heldout_by_task.iter().find(|t| t.task == task)).collect();
+            let losses: Vec<f64> = held_out.iter().map(|t| t.heldout_loss).collect();
+            let mses: Vec<f64> = held_out.iter().filter_map(|t| t.action_mse).collect();
+            let (successes, episodes) = runs
+                .iter()
+                .flat_map(|r| r.final_sim.by_task())
+                .filter(|t| t.task == task)
+                .fold((0, 0), |(s, e), t| (s + t.successes, e + t.episodes));
+            TaskReport {
+                heldout_loss: Interval::t(&losses).map(|i| i.within(0.0, f64::INFINITY)),
+                action_mse: Interval::t(&mses).map(|i| i.within(0.0, f64::INFINITY)),
+                episodes,
+                successes,
+                success_pooled: Interval::wilson(successes, episodes),
+                task,
+            }
+        })
+        .collect()
+}
+
+/// The language checks of an arm's final evaluations added up.
+fn pooled_language_check(runs: &[RunFigures]) -> Option<PooledLanguageCheck> {
+    let checks: Vec<_> = runs.iter().filter_map(|r| r.final_sim.language_check.as_ref()).collect();
+    let task = checks.first()?.task.clone();
+    let episodes = checks.iter().map(|c| c.episodes).sum();
+    let right_successes = checks.iter().map(|c| c.right_successes).sum();
+    let wrong_successes = checks.iter().map(|c| c.wrong_successes).sum();
+    Some(PooledLanguageCheck {
+        task,
+        episodes,
+        right_successes,
+        wrong_successes,
+        right: Interval::wilson(right_successes, episodes)?,
+        wrong: Interval::wilson(wrong_successes, episodes)?,
+    })
 }
 
 fn arm_privacy(run: &RunFigures) -> Option<ArmPrivacy> {
@@ -318,8 +411,62 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
         );
     }
     md.push_str("\nPlots: `heldout_loss.png`, `success_rate.png` (per round, the runs' own rollouts).\n");
+    tasks_markdown(&mut md, report);
     privacy_markdown(&mut md, report);
     md
+}
+
+/// Each task's figures per arm, and the language check of the task whose instruction decides the goal.
+fn tasks_markdown(md: &mut String, report: &Report) {
+    let opt = |i: &Option<Interval>, d| i.as_ref().map_or("-".to_owned(), |i| interval(i, d));
+    if report.arms.iter().any(|a| !a.tasks.is_empty()) {
+        md.push_str(
+            "\n## Per task\n\nThe last round's held-out figures on each task's rows (mean and Student-t 95% interval \
+             over seeds) and the final sim episodes of each task pooled over seeds (Wilson 95% interval).\n\n",
+        );
+        md.push_str(
+            "| arm | task | held-out loss | action MSE | sim success, pooled (Wilson) |\n|---|---|---|---|---|\n",
+        );
+        for arm in &report.arms {
+            for t in &arm.tasks {
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {} | {} ({}/{}) |",
+                    arm.name,
+                    t.task,
+                    opt(&t.heldout_loss, 4),
+                    opt(&t.action_mse, 2),
+                    opt(&t.success_pooled, 2),
+                    t.successes,
+                    t.episodes
+                );
+            }
+        }
+    }
+    let checks: Vec<(&str, &PooledLanguageCheck)> =
+        report.arms.iter().filter_map(|a| Some((a.name.as_str(), a.language_check.as_ref()?))).collect();
+    if checks.is_empty() {
+        return;
+    }
+    md.push_str(
+        "\n## Language check\n\nEvery final episode of the task whose instruction decides the goal, rolled out told its \
+         own instruction and again on the same layout and noise told another goal's; success is judged by the \
+         episode's own goal both times. A policy that ignores the instruction scores the same on both.\n\n",
+    );
+    md.push_str("| arm | task | told the right goal (Wilson) | told another goal (Wilson) |\n|---|---|---|---|\n");
+    for (name, c) in checks {
+        let _ = writeln!(
+            md,
+            "| {name} | {} | {} ({}/{}) | {} ({}/{}) |",
+            c.task,
+            interval(&c.right, 2),
+            c.right_successes,
+            c.episodes,
+            interval(&c.wrong, 2),
+            c.wrong_successes,
+            c.episodes
+        );
+    }
 }
 
 /// The DP arms' privacy: their noise, and epsilon after every round (a row per round, a column per arm).

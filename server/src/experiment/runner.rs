@@ -8,11 +8,13 @@ use anyhow::Context;
 use burn::tensor::Device;
 use fedvla_aggregator::records::RolloutResults;
 use fedvla_aggregator::run_dir::{POLICY_DIR, RunDir};
+use fedvla_data::LeRobotDataset;
 use fedvla_learner::rollout::SimPolicy;
 use fedvla_policy::PolicyDir;
+use fedvla_sim::TaskKind;
 use fedvla_workloads::datagen::ensure_unrecorded;
 use fedvla_workloads::sim_eval::{Agent, SimEvalOptions, evaluate_in_sim};
-use fedvla_workloads::smolvla::dataset_root;
+use fedvla_workloads::smolvla::{dataset_root, rollout_tasks};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::config::{Arm, ExperimentConfig, FINAL_FILE, FinalEvaluation, Mode, write_final};
@@ -50,9 +52,11 @@ pub fn run(config: &ExperimentConfig, log: &dyn Fn(&Path) -> anyhow::Result<()>)
         let train_seconds = started.elapsed().as_secs_f64();
         let last = final_round(&path)?;
         let layouts = config.eval_seed..config.eval_seed + config.eval_episodes as u64;
-        ensure_unrecorded(&dataset_root(&run_config)?, layouts)
-            .with_context(|| format!("arm {} seed {seed}", arm.name))?;
-        let sim = evaluate_final(&path, last, config, run_config.rollout_max_frames as usize)?;
+        let root = dataset_root(&run_config)?;
+        ensure_unrecorded(&root, layouts).with_context(|| format!("arm {} seed {seed}", arm.name))?;
+        let dataset = LeRobotDataset::open(&root).with_context(|| format!("opening {}", root.display()))?;
+        let tasks = rollout_tasks(&dataset);
+        let sim = evaluate_final(&path, last, config, &tasks, run_config.rollout_max_frames as usize)?;
         bar.println(format!(
             "{} seed {seed}: sim success {:.2} on {} held-out layouts ({:.0} s)",
             arm.name,
@@ -80,18 +84,20 @@ fn final_round(run: &Path) -> anyhow::Result<u64> {
     lines.last().map(|l| l.round).with_context(|| format!("{}: no metrics", run.display()))
 }
 
-/// The run's last global model (its LeRobot export) rolled out on the experiment's held-out layouts, unfilmed.
+/// The run's last global model (its LeRobot export) rolled out on the experiment's held-out layouts, unfilmed,
+/// episode k on the k-th of the run's `tasks`.
 fn evaluate_final(
     run: &Path,
     round: u64,
     config: &ExperimentConfig,
+    tasks: &[TaskKind],
     max_frames: usize,
 ) -> anyhow::Result<RolloutResults> {
     let policy_dir = RunDir::at(run).model_dir(round).join(POLICY_DIR);
     let policy = PolicyDir::load(&policy_dir).with_context(|| format!("loading {}", policy_dir.display()))?;
     let stats = policy.stats.clone().context("the exported policy has no normalisation statistics")?;
     let tokenizer = policy.tokenizer()?.context("the exported policy has no tokenizer")?;
-    let sim_policy = SimPolicy::new(&policy.cfg, &policy.weights, stats, &tokenizer, &Device::flex())?;
+    let sim_policy = SimPolicy::new(&policy.cfg, &policy.weights, stats, &tokenizer, tasks, &Device::flex())?;
     let source = policy_dir.display().to_string();
     let options =
         SimEvalOptions { episodes: config.eval_episodes, seed: config.eval_seed, max_frames, video_size: None };

@@ -131,7 +131,9 @@ impl LinRegTrainer {
         let world = World::new();
         let shift = match partitioning {
             Partitioning::Iid => 0.0,
-            Partitioning::ByEpisode | Partitioning::ByLayout => 0.5 * (shard as f32 % 3.0 - 1.0),
+            Partitioning::ByEpisode | Partitioning::ByLayout | Partitioning::ByTask | Partitioning::Dirichlet => {
+                0.5 * (shard as f32 % 3.0 - 1.0)
+            }
         };
         let seed = WORLD_SEED ^ (shard as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
         let (weight, bias) = head(&initial_model(0)).expect("initial model is valid");
@@ -240,8 +242,7 @@ impl Evaluator for LinRegEvaluator {
         Ok(EvalMetrics {
             heldout_loss: self.heldout.mse(&weight, bias),
             heldout_examples: self.heldout.len() as u64,
-            action_mse: None,
-            action_l1: None,
+            ..EvalMetrics::default()
         })
     }
 }

@@ -1,13 +1,14 @@
-//! Evaluation in the SO-100 simulation: roll a policy (or the scripted expert, on any task) out over a range of
-//! seeds, film every episode (top and wrist cameras side by side, H.264 mp4) and write
-//! `results.json` ([`RolloutResults`]). Used by `fedvla eval`, by the server after rounds and by experiments;
+//! Evaluation in the SO-100 simulation: roll a policy (episode k on the k-th of its tasks, told that episode's
+//! instruction) or the scripted expert (on any task) out over a range of seeds, film every episode (top and wrist
+//! cameras side by side, H.264 mp4), run the language check on the episodes of the task whose instruction decides
+//! the goal (each again, unfilmed, told another goal) and write `results.json` ([`RolloutResults`]). Used by `fedvla eval`, by the server after rounds and by experiments;
 //! [`FilmedRollouts`] films a native volunteer's rollouts the same way.
 
 use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use fedvla_aggregator::records::{RolloutResults, VideoError};
+use fedvla_aggregator::records::{RolloutResults, ToldWrong, VideoError};
 pub use fedvla_aggregator::run_dir::RESULTS_FILE;
 use fedvla_data::RgbImage;
 use fedvla_data::video::{CameraVideoWriter, VideoEncoding};
@@ -17,9 +18,9 @@ use fedvla_federation::{
     TrainOutput, Video,
 };
 use fedvla_learner::SmolVlaTrainer;
-use fedvla_learner::rollout::{EpisodeResult, SimPolicy, run_episode};
+use fedvla_learner::rollout::{Episode, EpisodeResult, SimPolicy, run_episode};
 use fedvla_learner::trainer::rollout_episode;
-use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, Scene, TaskKind, drive_expert_on, render};
+use fedvla_sim::{ActionNoise, Arrangement, Camera, ExpertEnd, FPS, Scene, TaskKind, drive_expert_on, render};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// First evaluation seed: training data is generated from seeds 0.., so evaluation scenes are
@@ -43,8 +44,8 @@ pub enum Agent<'a> {
 }
 
 impl Agent<'_> {
-    /// What results.json records as `policy`. It has no field for the task, so the expert's label names any task
-    /// but the first (whose results said "expert" before there were others).
+    /// What results.json records as `policy`: the expert's label names any task but the first (whose results said
+    /// "expert" before episodes recorded their task).
     fn label(&self) -> String {
         match self {
             Agent::Policy { source, .. } => source.to_string(),
@@ -100,6 +101,7 @@ pub fn evaluate_in_sim(
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let mut episodes = Vec::with_capacity(opts.episodes);
     let mut video_errors = Vec::new();
+    let mut told_wrong = Vec::new();
     for i in 0..opts.episodes {
         let seed = opts.seed + i as u64;
         let mut film = opts.video_size.map(|size| Film::start(&video_path(out, i), size));
@@ -109,8 +111,26 @@ pub fn evaluate_in_sim(
             }
         };
         let result = match agent {
-            Agent::Policy { policy, .. } => run_episode(policy, seed, opts.max_frames, &mut on_frame)
-                .with_context(|| format!("policy rollout of episode {i} (seed {seed})"))?,
+            Agent::Policy { policy, .. } => {
+                let task = policy.tasks().task_of(i);
+                let context = || format!("policy rollout of episode {i} ({task}, seed {seed})");
+                let result = Episode::new(policy, task, seed, opts.max_frames)
+                    .and_then(|episode| run_episode(episode, &mut on_frame))
+                    .with_context(context)?;
+                if let Some(instruction) = Arrangement::from_seed(task, seed).wrong_instruction() {
+                    let wrong = Episode::told(policy, task, seed, &instruction, opts.max_frames)
+                        .and_then(|episode| run_episode(episode, |_| {}))
+                        .with_context(|| format!("{}, told {instruction:?}", context()))?;
+                    told_wrong.push(ToldWrong {
+                        episode: i as u32,
+                        seed,
+                        instruction,
+                        success: wrong.success,
+                        length: wrong.length as u32,
+                    });
+                }
+                result
+            }
             Agent::Expert { task } => run_expert(task, seed, opts.max_frames, &mut on_frame),
         };
         let filmed = film.map(Film::finish);
@@ -125,9 +145,10 @@ pub fn evaluate_in_sim(
             success: result.success,
             length: result.length as u32,
             video,
+            task: Some(result.task.name().to_owned()),
         });
     }
-    let mut results = RolloutResults::of(agent.label(), None, episodes);
+    let mut results = RolloutResults::of(agent.label(), None, episodes).with_language_check(told_wrong);
     results.video_errors = video_errors;
     let path = out.join(RESULTS_FILE);
     let json = serde_json::to_vec_pretty(&results).context("serialising the results")?;
@@ -142,7 +163,7 @@ fn run_expert(task: TaskKind, seed: u64, max_frames: usize, mut on_frame: impl F
         on_frame(scene);
     });
     on_frame(&scene);
-    EpisodeResult { seed, success: scene.success(), length: scene.frame() as usize }
+    EpisodeResult { task, seed, success: scene.success(), length: scene.frame() as usize }
 }
 
 /// The SmolVLA volunteer as `fedvla join` and `simulate` run it: the shared trainer, its rollouts filmed as MP4
@@ -188,8 +209,9 @@ impl LocalTrainer for FilmedRollouts {
                 FILMS.fetch_add(1, Ordering::Relaxed)
             ));
             let mut film = Film::start(&path, ROLLOUT_VIDEO_SIZE);
-            let seed = request.first_seed + u64::from(episode);
-            let result = run_episode(&policy, seed, request.max_frames as usize, |scene| film.record(scene))?;
+            let (task, seed) = (policy.tasks().task_of(episode as usize), request.first_seed + u64::from(episode));
+            let run = Episode::new(&policy, task, seed, request.max_frames as usize)?;
+            let result = run_episode(run, |scene| film.record(scene))?;
             // A video that could not be made leaves the episode without one; the result still counts.
             let video = match film.finish().and_then(|()| fs::read(&path).map_err(|e| e.to_string())) {
                 Ok(bytes) => Some(Video { file_name: video_name(episode as usize), mime: "video/mp4".into(), bytes }),

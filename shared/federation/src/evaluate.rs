@@ -8,7 +8,7 @@ use crate::tensors::NamedTensors;
 
 /// What an evaluator measures of a global model on held-out data: the loss, and for a policy its action errors
 /// in robot units. The console (www/console.js) reads these names from each metrics line's `global`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct EvalMetrics {
     pub heldout_loss: f64,
     pub heldout_examples: u64,
@@ -16,6 +16,20 @@ pub struct EvalMetrics {
     pub action_mse: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub action_l1: Option<f64>,
+    /// Each task's share of the held-out rows, in the order the tasks first appear (data of more than one task).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub heldout_by_task: Vec<TaskHeldOut>,
+}
+
+/// The held-out figures of one task's rows: their mean loss, and the MSE of their sampled action values.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TaskHeldOut {
+    /// The task's name (`fedvla tasks`), or its instruction where it is no sim task.
+    pub task: String,
+    pub heldout_examples: u64,
+    pub heldout_loss: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub action_mse: Option<f64>,
 }
 
 impl EvalMetrics {

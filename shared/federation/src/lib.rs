@@ -25,10 +25,11 @@ pub use data_report::{
     DataReport, DatasetSignature, FeatureMoments, FeatureSummary, NormalizationStats, OwnDataset, StatsSource,
 };
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
-pub use evaluate::{EvalMetrics, Evaluator};
+pub use evaluate::{EvalMetrics, Evaluator, TaskHeldOut};
 pub use protocol::{
-    Capabilities, ClientMessage, ErrorCode, LrSchedule, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics,
-    RoundTask, ServerMessage, StrategyParams, UpdateEncoding, VolunteerSetup, WorkloadKind, routes,
+    Capabilities, ClientMessage, ErrorCode, InstructionTokens, LrSchedule, PROTOCOL_VERSION, RolloutEpisode,
+    RolloutRequest, RolloutTasks, RoundMetrics, RoundTask, ServerMessage, StrategyParams, UpdateEncoding,
+    VolunteerSetup, WorkloadKind, routes,
 };
 pub use seed::{fnv1a, mix};
 pub use strategy::{

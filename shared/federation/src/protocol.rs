@@ -152,6 +152,9 @@ pub struct RolloutEpisode {
     pub length: u32,
     /// File name the video was uploaded under (`POST /rollout/{round}/{file}`), if one was recorded.
     pub video: Option<String>,
+    /// The sim task of the episode (its name, `fedvla tasks`), told its own instruction.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub task: Option<String>,
 }
 
 /// Sim rollouts a task asks for: `episodes` episodes from seeds `first_seed..`, each at most `max_frames`.
@@ -320,9 +323,10 @@ pub struct VolunteerSetup {
     /// `GET` path of the frozen tensors (safetensors), named by their content hash so caches never go stale.
     pub frozen_url: Option<String>,
     pub frozen_bytes: u64,
-    /// The sim task's token ids and mask for rollouts (the shard carries the training tasks' ids).
-    pub rollout_task_tokens: Vec<u32>,
-    pub rollout_task_mask: Vec<bool>,
+    /// The sim tasks rollouts cycle through and their instructions' token ids (the shard carries the training
+    /// tasks' ids).
+    #[serde(default)]
+    pub rollout_tasks: RolloutTasks,
     /// The global model version at the time of the request.
     pub model_version: u64,
     /// `GET` path of the run's tokenizer, for volunteers that bring their own dataset.
@@ -331,6 +335,24 @@ pub struct VolunteerSetup {
     /// What an own dataset must match (the server checks it again on join); `None`: the run takes none.
     #[serde(default)]
     pub dataset_signature: Option<DatasetSignature>,
+}
+
+/// What a run's sim rollouts ask of a policy: the tasks its episodes cycle through (episode k of a rollout on
+/// task `k mod n`, on its seed's layout), and every instruction those tasks give, tokenised by the run's
+/// tokenizer (a client need not have it). A run of one task lists that one.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RolloutTasks {
+    /// Task names, as `fedvla tasks` prints them.
+    pub tasks: Vec<String>,
+    pub instructions: Vec<InstructionTokens>,
+}
+
+/// One instruction as the policy reads it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InstructionTokens {
+    pub instruction: String,
+    pub ids: Vec<u32>,
+    pub mask: Vec<bool>,
 }
 
 /// Why the server refused something.

@@ -187,7 +187,14 @@ fn protocol_messages_never_panic() {
         ClientMessage::RolloutResult {
             round: 2,
             model_version: 2,
-            episodes: vec![RolloutEpisode { episode: 0, seed: 20_000, success: true, length: 180, video: None }],
+            episodes: vec![RolloutEpisode {
+                episode: 0,
+                seed: 20_000,
+                success: true,
+                length: 180,
+                video: None,
+                task: None,
+            }],
         },
     ]
     .iter()

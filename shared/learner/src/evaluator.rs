@@ -1,12 +1,15 @@
-//! The server's evaluation of each global model on the federation's own held-out episodes.
+//! The server's evaluation of each global model on the federation's own held-out episodes, in total and, for data
+//! of several tasks, per task.
 
 use burn::tensor::Device;
-use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors, NormalizationStats};
+use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors, NormalizationStats, TaskHeldOut};
 use fedvla_policy::weights::ParamStore;
 use fedvla_policy::{SmolVla, SmolVlaConfig, WeightMap};
 
+use fedvla_sim::TaskKind;
+
 use crate::examples::ShardExamples;
-use crate::heldout::{HeldOut, heldout_metrics};
+use crate::heldout::{HeldOut, RowFigures, heldout_metrics};
 use crate::tensors::to_weights;
 
 /// Held-out loss and action errors of a global model on the server's held-out shard.
@@ -26,6 +29,36 @@ impl HeldOutEvaluator {
     }
 }
 
+/// The rows' figures grouped by their task (a sim task by its name, any other by its instruction), in the order the
+/// tasks first appear; none for rows of one task, whose figures are the totals.
+fn by_task(examples: &ShardExamples, rows: &[RowFigures]) -> Vec<TaskHeldOut> {
+    let mut groups: Vec<(String, Vec<&RowFigures>)> = Vec::new();
+    for figures in rows {
+        let instruction = examples.task_of(figures.row);
+        let task =
+            TaskKind::of_instruction(instruction).map_or_else(|| instruction.to_owned(), |t| t.name().to_owned());
+        match groups.iter_mut().find(|(name, _)| *name == task) {
+            Some((_, members)) => members.push(figures),
+            None => groups.push((task, vec![figures])),
+        }
+    }
+    if groups.len() < 2 {
+        return Vec::new();
+    }
+    groups
+        .into_iter()
+        .map(|(task, members)| {
+            let values: usize = members.iter().map(|r| r.action_values).sum();
+            TaskHeldOut {
+                task,
+                heldout_examples: members.len() as u64,
+                heldout_loss: members.iter().map(|r| r.loss).sum::<f64>() / members.len() as f64,
+                action_mse: (values > 0).then(|| members.iter().map(|r| r.squared_error).sum::<f64>() / values as f64),
+            }
+        })
+        .collect()
+}
+
 impl Evaluator for HeldOutEvaluator {
     fn evaluate(&mut self, global: &NamedTensors) -> Result<EvalMetrics, BoxError> {
         let weights = to_weights(global);
@@ -41,6 +74,7 @@ impl Evaluator for HeldOutEvaluator {
             heldout_examples: self.held_out.rows.len() as u64,
             action_mse: Some(m.action_mse),
             action_l1: Some(m.action_l1),
+            heldout_by_task: by_task(&self.examples, &m.rows),
         })
     }
 

@@ -136,6 +136,12 @@ impl ShardExamples {
         &self.shard.manifest.content_sha256
     }
 
+    /// The task (instruction) row `row` records.
+    pub fn task_of(&self, row: usize) -> &str {
+        let index = self.shard.task_index.get(row).map_or(0, |&t| t as usize);
+        self.shard.manifest.tasks.get(index).map_or("", String::as_str)
+    }
+
     /// The frames of its training episodes.
     pub fn train_examples(&self) -> u64 {
         self.train_rows.len() as u64

@@ -1,6 +1,7 @@
 //! Held-out evaluation of a policy on shard rows it never trained on: the flow-matching loss with
 //! noise and times drawn from a fixed seed (so every round is measured the same way), and the
-//! MSE/L1 of sampled action chunks against the recorded ones, in robot units.
+//! MSE/L1 of sampled action chunks against the recorded ones, in robot units; and each row's share
+//! of both, for figures per task.
 
 use fedvla_policy::batch::{Prepared, prepare_actions};
 use fedvla_policy::smolvla::{gaussian_noise, sample_times};
@@ -30,11 +31,24 @@ impl HeldOut {
 }
 
 /// Held-out figures.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct HeldOutMetrics {
     pub loss: f64,
     pub action_mse: f64,
     pub action_l1: f64,
+    /// Every evaluated row's own figures, in the order evaluated.
+    pub rows: Vec<RowFigures>,
+}
+
+/// One held-out row's figures, from the same noise and samples as the totals.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RowFigures {
+    pub row: usize,
+    /// The flow-matching loss over the row's unpadded action steps.
+    pub loss: f64,
+    /// Sum of the squared errors of its unpadded sampled action values, and their count.
+    pub squared_error: f64,
+    pub action_values: usize,
 }
 
 pub fn heldout_metrics(
@@ -50,6 +64,7 @@ pub fn heldout_metrics(
     let mut rng = StdRng::seed_from_u64(SEED);
     let action_stats = examples.stats().get("action")?;
     let (mut loss_sum, mut se, mut ae, mut n_loss, mut n_act) = (0.0, 0.0, 0.0, 0usize, 0usize);
+    let mut figures = Vec::with_capacity(held_out.rows.len());
     for rows in held_out.rows.chunks(BATCH) {
         let batch = examples.batch(rows, cfg.chunk_size)?;
         let obs = Prepared::new(cfg, &batch, &device)?;
@@ -67,28 +82,46 @@ pub fn heldout_metrics(
         );
         loss_sum += out.loss.into_scalar::<f64>() * b as f64;
         n_loss += b;
+        let a = cfg.action_dim();
+        let pad = batch.action_is_pad.as_deref().expect("shard batches carry pad flags");
+        // Each row's loss as the batch's is taken: squared errors of its unpadded steps' action values, averaged.
+        let losses = HostTensor::from_tensor(out.losses.narrow(2, 0, a));
+        for (n, &row) in rows.iter().enumerate() {
+            let (mut sum, mut count) = (0.0, 0usize);
+            for step in 0..cfg.chunk_size {
+                if !pad[n * cfg.chunk_size + step] {
+                    let at = (n * cfg.chunk_size + step) * a;
+                    sum += losses.data[at..at + a].iter().map(|&v| f64::from(v)).sum::<f64>();
+                    count += a;
+                }
+            }
+            figures.push(RowFigures { row, loss: sum / count.max(1) as f64, squared_error: 0.0, action_values: 0 });
+        }
 
         let sample_noise = gaussian_noise(&mut rng, [b, cfg.chunk_size, cfg.max_action_dim], &device);
-        let a = cfg.action_dim();
         let sampled = HostTensor::from_tensor(model.sample_actions(&obs, sample_noise, None).narrow(2, 0, a));
         let predicted = action_stats.unnormalize(&sampled.data);
         let target = action_stats.unnormalize(&actions.data);
-        let pad = batch.action_is_pad.as_deref().expect("shard batches carry pad flags");
+        let batch_rows = figures.len() - b;
         for (step, p) in pad.iter().enumerate() {
             if *p {
                 continue;
             }
+            let row = &mut figures[batch_rows + step / cfg.chunk_size];
             for j in 0..a {
                 let d = (predicted[step * a + j] - target[step * a + j]) as f64;
                 se += d * d;
                 ae += d.abs();
+                row.squared_error += d * d;
             }
             n_act += a;
+            row.action_values += a;
         }
     }
     Ok(HeldOutMetrics {
         loss: loss_sum / n_loss as f64,
         action_mse: se / n_act.max(1) as f64,
         action_l1: ae / n_act.max(1) as f64,
+        rows: figures,
     })
 }

@@ -16,7 +16,7 @@ use rand::seq::SliceRandom;
 use crate::examples::ShardExamples;
 use crate::feature_cache::{DEFAULT_CACHE_BYTES, FeatureCache};
 use crate::heldout::{HeldOut, heldout_metrics};
-use crate::rollout::{EpisodeResult, SimPolicy, TaskTokens, run_episode};
+use crate::rollout::{Episode, EpisodeResult, SimPolicy, SimTasks, run_episode};
 use crate::tensors::{to_named, to_weights};
 
 /// Where a round's local training stands, after each step.
@@ -36,8 +36,8 @@ pub struct SmolVlaTrainer {
     examples: ShardExamples,
     held_out: HeldOut,
     backend: String,
-    /// The sim task's tokens; without them the client does not roll out.
-    rollout_tokens: Option<TaskTokens>,
+    /// The run's rollout tasks and their instructions' tokens; without them the client does not roll out.
+    rollout_tasks: Option<SimTasks>,
     /// Each row's context keys and values, when the backbone is frozen (see [`FeatureCache`]).
     cache: Option<FeatureCache>,
 }
@@ -67,7 +67,7 @@ impl SmolVlaTrainer {
             examples,
             held_out,
             backend: backend.into(),
-            rollout_tokens: None,
+            rollout_tasks: None,
             cache: cfg.backbone_frozen().then(|| FeatureCache::new(DEFAULT_CACHE_BYTES)),
         })
     }
@@ -95,8 +95,8 @@ impl SmolVlaTrainer {
     }
 
     /// Lets this client roll the global model out in the sim when a task asks.
-    pub fn with_rollouts(mut self, tokens: TaskTokens) -> Self {
-        self.rollout_tokens = Some(tokens);
+    pub fn with_rollouts(mut self, tasks: SimTasks) -> Self {
+        self.rollout_tasks = Some(tasks);
         self
     }
 
@@ -109,10 +109,10 @@ impl SmolVlaTrainer {
         &self.trainer.model.cfg
     }
 
-    /// The global model last set, as a sim policy on the CPU; `None` without the sim task's tokens.
+    /// The global model last set, as a sim policy on the CPU; `None` without the run's rollout tasks.
     pub fn sim_policy(&self) -> Result<Option<SimPolicy>, BoxError> {
-        let Some(tokens) = &self.rollout_tokens else { return Ok(None) };
-        Ok(Some(SimPolicy::from_model(self.global_cpu.clone(), self.examples.stats().clone(), tokens.clone())?))
+        let Some(tasks) = &self.rollout_tasks else { return Ok(None) };
+        Ok(Some(SimPolicy::from_model(self.global_cpu.clone(), self.examples.stats().clone(), tasks.clone())?))
     }
 
     /// [`LocalTrainer::train`], awaiting `after_step` after every step (the browser redraws its progress and
@@ -202,8 +202,8 @@ impl LocalTrainer for SmolVlaTrainer {
         let Some(policy) = self.sim_policy()? else { return Ok(Vec::new()) };
         (0..request.episodes)
             .map(|episode| {
-                let seed = request.first_seed + u64::from(episode);
-                let result = run_episode(&policy, seed, request.max_frames as usize, |_| {})?;
+                let (task, seed) = (policy.tasks().task_of(episode as usize), request.first_seed + u64::from(episode));
+                let result = run_episode(Episode::new(&policy, task, seed, request.max_frames as usize)?, |_| {})?;
                 Ok(RolloutOutput { episode: rollout_episode(episode, &result), video: None })
             })
             .collect()
@@ -212,5 +212,12 @@ impl LocalTrainer for SmolVlaTrainer {
 
 /// The protocol's record of a finished episode (its video is filled in by whoever filmed it).
 pub fn rollout_episode(episode: u32, result: &EpisodeResult) -> RolloutEpisode {
-    RolloutEpisode { episode, seed: result.seed, success: result.success, length: result.length as u32, video: None }
+    RolloutEpisode {
+        episode,
+        seed: result.seed,
+        success: result.success,
+        length: result.length as u32,
+        video: None,
+        task: Some(result.task.name().to_owned()),
+    }
 }

@@ -16,6 +16,7 @@ use fedvla_policy::weights::parse_safetensors;
 use fedvla_policy::{SmolVlaConfig, Tokenizer};
 
 use crate::examples::ShardExamples;
+use crate::rollout::SimTasks;
 use crate::trainer::SmolVlaTrainer;
 
 /// How a volunteer downloads from its server.
@@ -128,10 +129,6 @@ pub async fn smolvla_volunteer_on(
     let mut weights = parse_safetensors(&frozen, Path::new("frozen weights"))?;
     weights.extend(parse_safetensors(&global, Path::new("global model"))?);
     let examples = ShardExamples::new(shard, &cfg)?;
-    let tokens = (
-        setup.rollout_task_tokens.iter().map(|&i| i64::from(i)).collect(),
-        setup.rollout_task_mask.clone(),
-        setup.rollout_task_tokens.len(),
-    );
-    Ok(SmolVlaTrainer::new(&cfg, &weights, examples, volunteer_seed(name), device, backend)?.with_rollouts(tokens))
+    let tasks = SimTasks::from_wire(&setup.rollout_tasks)?;
+    Ok(SmolVlaTrainer::new(&cfg, &weights, examples, volunteer_seed(name), device, backend)?.with_rollouts(tasks))
 }

@@ -1,6 +1,7 @@
 //! What stands on the table when an episode of a task starts: the cubes (colour, place, yaw),
 //! which of them the task is about, and where it has to end (the bowl, the top of another
-//! cube, the target marker), drawn from the episode's seed. Every object stands where the arm
+//! cube, the target marker), drawn from the episode's seed; the instructions each task gives (and,
+//! where the instruction decides the goal, a wrong one naming another cube). Every object stands where the arm
 //! reaches it with the gripper pointing down, and far enough from the others that the open jaw
 //! closing on one cube does not sweep another.
 
@@ -112,6 +113,19 @@ impl Arrangement {
             (_, Goal::InBowl { .. }) => format!("put the {colour} cube in the bowl"),
         }
     }
+
+    /// For a task whose instruction decides the goal ([`TaskKind::instruction_decides`]), the
+    /// instruction naming another goal on the same table: the next cube's colour. Told it, a
+    /// policy that reads the instruction goes for the wrong cube (and fails the episode's
+    /// success test), while one that ignores language does what it does told the right one.
+    pub fn wrong_instruction(&self) -> Option<String> {
+        self.task.instruction_decides().then(|| self.naming((self.subject + 1) % self.cubes.len()))
+    }
+
+    /// The instruction this arrangement would give if cube `subject` were the one to move.
+    fn naming(&self, subject: usize) -> String {
+        Arrangement { subject, ..self.clone() }.instruction()
+    }
 }
 
 impl TaskKind {
@@ -119,6 +133,27 @@ impl TaskKind {
     /// [`TaskKind::PickColour`] it names the colour the seed drew.
     pub fn instruction(self, seed: u64) -> String {
         Arrangement::from_seed(self, seed).instruction()
+    }
+
+    /// Whether the instruction alone says which of the objects on the table is the goal: only a
+    /// policy that reads it can succeed.
+    pub fn instruction_decides(self) -> bool {
+        self == TaskKind::PickColour
+    }
+
+    /// Every instruction the task gives, over all seeds: one per cube it can name where the
+    /// instruction decides, else its one instruction (the others' do not depend on the seed).
+    pub fn instructions(self) -> Vec<String> {
+        let arrangement = Arrangement::from_seed(self, 0);
+        match self.instruction_decides() {
+            true => (0..arrangement.cubes.len()).map(|subject| arrangement.naming(subject)).collect(),
+            false => vec![arrangement.instruction()],
+        }
+    }
+
+    /// The task that gives `instruction`, if the sim's tasks give it.
+    pub fn of_instruction(instruction: &str) -> Option<TaskKind> {
+        TaskKind::ALL.into_iter().find(|task| task.instructions().iter().any(|i| i == instruction))
     }
 }
 
@@ -281,6 +316,33 @@ mod tests {
                         assert!(off_face.min(FRAC_PI_2 - off_face) < 1e-3, "{task} seed {seed}: not along a face");
                     }
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn instructions_list_every_seed_s_and_name_their_task() {
+        for task in TaskKind::ALL {
+            let listed = task.instructions();
+            for seed in SEEDS {
+                let instruction = task.instruction(seed);
+                assert!(listed.contains(&instruction), "{task} seed {seed}: {instruction:?} not in {listed:?}");
+                assert_eq!(TaskKind::of_instruction(&instruction), Some(task));
+            }
+        }
+        assert_eq!(TaskKind::PickColour.instructions().len(), CubeColour::ALL.len());
+        assert_eq!(TaskKind::of_instruction("juggle the cubes"), None);
+    }
+
+    #[test]
+    fn a_wrong_instruction_names_another_cube_only_where_the_instruction_decides() {
+        for seed in SEEDS {
+            let arrangement = Arrangement::from_seed(TaskKind::PickColour, seed);
+            let wrong = arrangement.wrong_instruction().unwrap();
+            assert_ne!(wrong, arrangement.instruction());
+            assert!(TaskKind::PickColour.instructions().contains(&wrong));
+            for task in [TaskKind::CubeInBowl, TaskKind::Stack, TaskKind::PushToTarget] {
+                assert_eq!(Arrangement::from_seed(task, seed).wrong_instruction(), None);
             }
         }
     }

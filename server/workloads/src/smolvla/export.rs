@@ -11,6 +11,7 @@ use fedvla_learner::rollout::SimPolicy;
 use fedvla_learner::tensors::to_weights;
 use fedvla_policy::policy_dir::export;
 use fedvla_policy::{NormStats, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap};
+use fedvla_sim::TaskKind;
 
 use fedvla_aggregator::config::RunConfig;
 use fedvla_aggregator::records::SimFigures;
@@ -20,14 +21,17 @@ use super::tokenizer::RunTokenizer;
 use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim};
 
 /// Rolls each round's global model out in the sim (`global_model/round_N/rollouts/`: results.json
-/// with the success rate and one MP4 per episode), on the same seeds every round, for as many
-/// episodes as `rollout-episodes` says at that round (the operator may change it; 0: none).
+/// with the success rate, per task and the language check, and one MP4 per episode), on the same seeds
+/// and tasks every round, for as many episodes as `rollout-episodes` says at that round (the operator
+/// may change it; 0: none).
 pub(super) struct SimRollouts {
     pub(super) cfg: SmolVlaConfig,
     pub(super) frozen: Arc<WeightMap>,
     /// The dataset's, until the run agrees others by federated statistics.
     pub(super) stats: RwLock<NormStats>,
     pub(super) tokenizer: Tokenizer,
+    /// The run's rollout tasks: episode k on the k-th.
+    pub(super) tasks: Vec<TaskKind>,
 }
 
 impl ModelExporter for SimRollouts {
@@ -46,7 +50,7 @@ impl ModelExporter for SimRollouts {
         let mut weights = (*self.frozen).clone();
         weights.extend(to_weights(global));
         let stats = self.stats.read().expect("statistics lock").clone();
-        let policy = SimPolicy::new(&self.cfg, &weights, stats, &self.tokenizer, &Device::flex())?;
+        let policy = SimPolicy::new(&self.cfg, &weights, stats, &self.tokenizer, &self.tasks, &Device::flex())?;
         let source = format!("global model of round {round}");
         let options = SimEvalOptions {
             episodes: config.rollout_episodes,
@@ -61,10 +65,14 @@ impl ModelExporter for SimRollouts {
             |_, _| {},
         )
         .map_err(|e| format!("{e:#}"))?;
+        let by_task: Vec<String> =
+            summary.by_task().iter().map(|t| format!("{} {}/{}", t.task, t.successes, t.episodes)).collect();
         tracing::info!(
             round,
             success_rate = ?summary.success_rate,
             mean_length = ?summary.mean_length,
+            by_task = by_task.join(", "),
+            language_check = ?summary.language_check.as_ref().map(|c| (c.right_successes, c.wrong_successes, c.episodes)),
             "global model rolled out in the sim"
         );
         Ok(summary.figures())

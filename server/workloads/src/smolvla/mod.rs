@@ -21,14 +21,14 @@ use fedvla_federation::{
     BoxError, DatasetSignature, Evaluator, FeatureSummary, NamedTensors, NormalizationStats, StatsSource,
 };
 use fedvla_learner::examples::{dataset_signature, norm_stats};
-use fedvla_learner::rollout::TaskTokens;
+use fedvla_learner::rollout::SimTasks;
 use fedvla_learner::tensors::to_named;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes_as};
 use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
-use fedvla_sim::{Arrangement, TASK, TaskKind};
+use fedvla_sim::{Arrangement, TaskKind};
 
 use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
@@ -64,7 +64,24 @@ pub struct SmolVlaWorkload {
     server_shard: PathBuf,
     /// Every client's training episodes in one shard: what the centralized baseline trains on.
     pooled_shard: PathBuf,
+    /// The sim tasks the dataset records, which every rollout of the run cycles through.
+    rollout_tasks: Vec<TaskKind>,
     seed: u64,
+}
+
+/// The sim tasks `dataset` records, in the order their instructions first appear in its task list; a dataset
+/// of no sim task (a real robot's) is rolled out on the first task, as every run was before there were others.
+pub fn rollout_tasks(dataset: &LeRobotDataset) -> Vec<TaskKind> {
+    let mut tasks: Vec<TaskKind> = Vec::new();
+    for task in dataset.tasks().iter().filter_map(|instruction| TaskKind::of_instruction(instruction)) {
+        if !tasks.contains(&task) {
+            tasks.push(task);
+        }
+    }
+    if tasks.is_empty() {
+        tasks.push(TaskKind::CubeInBowl);
+    }
+    tasks
 }
 
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
@@ -139,11 +156,14 @@ fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
     Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}{tasks}", config.dataset_episodes))
 }
 
-fn partition_strategy(p: Partitioning) -> PartitionStrategy {
-    match p {
+/// The partitioner's strategy for the configuration's `partitioning` (and `partition-alpha`).
+fn partition_strategy(config: &RunConfig) -> PartitionStrategy {
+    match config.partitioning {
         Partitioning::Iid => PartitionStrategy::EpisodeModulo,
         Partitioning::ByEpisode => PartitionStrategy::Contiguous,
         Partitioning::ByLayout => PartitionStrategy::ContiguousInGivenOrder,
+        Partitioning::ByTask => PartitionStrategy::ByTask,
+        Partitioning::Dirichlet => PartitionStrategy::Dirichlet { alpha: config.partition_alpha },
     }
 }
 
@@ -311,7 +331,7 @@ impl SmolVlaWorkload {
         );
         let partition_config = PartitionConfig {
             num_clients: config.num_clients,
-            strategy: partition_strategy(config.partitioning),
+            strategy: partition_strategy(config),
             client_held_out_fraction: CLIENT_HELD_OUT,
             server_held_out_fraction: SERVER_HELD_OUT,
             seed: config.seed,
@@ -411,6 +431,7 @@ impl SmolVlaWorkload {
             client_shards,
             server_shard,
             pooled_shard,
+            rollout_tasks: rollout_tasks(&dataset),
             seed: config.seed,
         })
     }
@@ -436,11 +457,6 @@ impl SmolVlaWorkload {
 
     pub fn policy_config(&self) -> &SmolVlaConfig {
         &self.cfg
-    }
-
-    /// The sim task as the policy reads it.
-    fn task_tokens(&self) -> anyhow::Result<TaskTokens> {
-        self.tokenizer.encode(TASK, self.cfg.tokenizer_max_length, self.cfg.pad_language_to == "max_length")
     }
 
     /// The backbone tensors no client trains: exported with every round and downloaded once by volunteers.
@@ -484,22 +500,68 @@ impl Workload for SmolVlaWorkload {
                 frozen,
                 stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.tokenizer(),
+                tasks: self.rollout_tasks.clone(),
             }),
         ]
     }
 
     fn volunteer_offer(&self) -> Result<VolunteerOffer, BoxError> {
-        let (ids, mask, _) = self.task_tokens().map_err(|e| format!("{e:#}"))?;
+        let rollout_tasks = SimTasks::tokenize(&self.rollout_tasks, &self.tokenizer.tokenizer(), &self.cfg)?;
         Ok(VolunteerOffer {
             workload: WorkloadKind::Smolvla,
             shards: self.client_shards.clone(),
             policy: serde_json::json!({ "policy": self.cfg.to_lerobot_json(), "vlm": self.cfg.vlm_config_json() }),
             frozen: Some(safetensors_bytes_as(&self.frozen_weights(), self.checkpoint_dtype)?.into()),
-            rollout_task_tokens: ids.into_iter().map(|i| i as u32).collect(),
-            rollout_task_mask: mask,
+            rollout_tasks: rollout_tasks.to_wire(),
             signature: Some(self.signature.clone()),
             norm_stats: Some(self.dataset_stats.clone()),
             tokenizer: Some(self.tokenizer.json().map_err(|e| format!("{e:#}"))?.into()),
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn by_task_and_dirichlet_partitionings_are_reachable_from_the_configuration() {
+        let config = |overrides: &str| RunConfig::default().with_overrides(overrides).unwrap();
+        let episodes: Vec<EpisodeTask> = (0..40).map(|i| EpisodeTask { episode_index: i, task_index: i % 4 }).collect();
+        let split = |config: &RunConfig| {
+            let partition_config = PartitionConfig {
+                num_clients: config.num_clients,
+                strategy: partition_strategy(config),
+                client_held_out_fraction: CLIENT_HELD_OUT,
+                server_held_out_fraction: SERVER_HELD_OUT,
+                seed: config.seed,
+            };
+            partition(&episodes, &partition_config).unwrap()
+        };
+
+        let by_task = config("partitioning=by-task num-clients=4");
+        assert_eq!(partition_strategy(&by_task), PartitionStrategy::ByTask);
+        for client in split(&by_task).clients {
+            let mut tasks: Vec<usize> = client.all().map(|e| e % 4).collect();
+            tasks.dedup();
+            assert_eq!(tasks.len(), 1, "one task per client: {client:?}");
+        }
+
+        let dirichlet = config("partitioning=dirichlet partition-alpha=0.2 num-clients=4");
+        assert_eq!(partition_strategy(&dirichlet), PartitionStrategy::Dirichlet { alpha: 0.2 });
+        let uniform = config("partitioning=dirichlet partition-alpha=1000 num-clients=4");
+        // Small alpha: some client lacks some task; huge alpha: every client holds every task.
+        let tasks_held = |config: &RunConfig| -> Vec<usize> {
+            split(config)
+                .clients
+                .iter()
+                .map(|c| c.all().map(|e| e % 4).collect::<std::collections::BTreeSet<_>>().len())
+                .collect()
+        };
+        assert!(tasks_held(&dirichlet).iter().any(|&n| n < 4), "{:?}", tasks_held(&dirichlet));
+        assert!(tasks_held(&uniform).iter().all(|&n| n == 4), "{:?}", tasks_held(&uniform));
+
+        let err = RunConfig::default().with_overrides("partition-alpha=0").unwrap_err().to_string();
+        assert!(err.contains("partition-alpha"), "{err}");
     }
 }

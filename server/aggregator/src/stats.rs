@@ -1,5 +1,5 @@
-//! The intervals an experiment report states: a Student-t 95% interval of a mean over seeds, and a Wilson 95%
-//! interval of a success rate over pooled episodes.
+//! The intervals figures are stated with: a Student-t 95% interval of a mean over seeds (experiment reports), and a
+//! Wilson 95% interval of a success rate over pooled episodes (reports, and the language check of a sim evaluation).
 
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, Normal, StudentsT};

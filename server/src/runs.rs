@@ -67,12 +67,13 @@ impl Bars {
 /// The directory shards are written to inside a run.
 pub const SHARDS_DIR: &str = "shards";
 
-/// A federation of `config.num_clients` native clients, one per shard, until its last round.
+/// A federation of `config.num_clients` native clients, one per shard, and one per `own-datasets` entry on that
+/// dataset, until its last round.
 pub fn federated(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::Result<RunStatus> {
+    let clients = config.num_clients + config.own_datasets.len();
     anyhow::ensure!(
-        config.num_clients >= config.min_clients,
-        "{} clients is below min-clients {}: no round would start",
-        config.num_clients,
+        clients >= config.min_clients,
+        "{clients} clients is below min-clients {}: no round would start",
         config.min_clients
     );
     match config.workload {
@@ -91,6 +92,7 @@ fn serve_clients(
     run_dir: RunDir,
     bars: &Bars,
 ) -> anyhow::Result<RunStatus> {
+    let own_datasets: Vec<PathBuf> = config.own_datasets.iter().map(PathBuf::from).collect();
     let clients = config.num_clients;
     let rounds = config.num_server_rounds;
     let attack = Attack { kind: config.attack, strength: config.attack_strength };
@@ -120,28 +122,33 @@ fn serve_clients(
                 }
             }
         });
-        let tasks: Vec<_> = (0..clients)
+        let server = || Server { url: url.clone(), ca_cert: ca_cert.clone(), auth_token: auth_token.clone() };
+        let mut tasks: Vec<_> = (0..clients)
             .map(|shard| {
                 let attack = (shard < attackers).then_some(attack);
                 let prefix = if attack.is_some() { format!("attacker {shard}") } else { format!("client {shard}") };
-                let server = Server { url: url.clone(), ca_cert: ca_cert.clone(), auth_token: auth_token.clone() };
-                Ok(spawn_client(server, shard, attack, bars.bar(rounds, prefix)?))
+                let (name, data) = (format!("client-{shard}"), SimulatedData::Shard(shard as u32));
+                Ok((name.clone(), spawn_client(server(), name, data, attack, bars.bar(rounds, prefix)?)))
             })
             .collect::<anyhow::Result<_>>()?;
+        for (i, path) in own_datasets.into_iter().enumerate() {
+            let bar = bars.bar(rounds, format!("own data {i}"))?;
+            let name = format!("own-{i}");
+            tasks.push((name.clone(), spawn_client(server(), name, SimulatedData::Own(path), None, bar)));
+        }
         // A simulated federation cannot finish without its clients: the first client to fail
         // stops the run instead of leaving the server waiting for it.
         let cancel = handle.cancel_token();
         let clients: Vec<_> = tasks
             .into_iter()
-            .enumerate()
-            .map(|(shard, done)| {
+            .map(|(name, done)| {
                 let cancel = cancel.clone();
                 tokio::spawn(async move {
                     let result = done.await.unwrap_or_else(|_| Err(anyhow::anyhow!("panicked")));
                     if result.is_err() {
                         cancel.cancel();
                     }
-                    result.with_context(|| format!("client {shard}"))
+                    result.with_context(|| format!("volunteer {name}"))
                 })
             })
             .collect();
@@ -162,8 +169,14 @@ fn serve_clients(
     })
 }
 
-/// Volunteer `client-<shard>` on shard `shard` with its own progress bar, on its own thread: trainers' futures
-/// need not be `Send` (the browser's are not), and CPU-bound trainers then train in parallel.
+/// What a simulated volunteer trains on.
+enum SimulatedData {
+    Shard(u32),
+    Own(PathBuf),
+}
+
+/// Volunteer `name` on `data` with its own progress bar, on its own thread: trainers' futures need not be `Send`
+/// (the browser's are not), and CPU-bound trainers then train in parallel.
 /// Where `simulate`'s clients join, and what they trust and present there.
 struct Server {
     url: String,
@@ -173,20 +186,25 @@ struct Server {
 
 fn spawn_client(
     server: Server,
-    shard: usize,
+    name: String,
+    data: SimulatedData,
     attack: Option<Attack>,
     bar: ProgressBar,
 ) -> oneshot::Receiver<anyhow::Result<()>> {
     let (done_tx, done) = oneshot::channel();
     std::thread::spawn(move || {
         let client = async move {
-            let name = format!("client-{shard}");
             let Server { url, ca_cert, auth_token } = server;
+            let identity = native_client::simulated_identity(&name);
             let volunteer = Volunteer {
                 server: &url,
                 ca_cert: ca_cert.as_deref(),
                 name: &name,
-                data: VolunteerData::Shard(Some(shard as u32)),
+                identity: &identity,
+                data: match &data {
+                    SimulatedData::Shard(shard) => VolunteerData::Shard(Some(*shard)),
+                    SimulatedData::Own(path) => VolunteerData::Own(path),
+                },
                 auth_token,
                 attack,
             };

@@ -711,6 +711,15 @@ mod tests {
     }
 
     #[test]
+    fn own_datasets_take_a_list_of_paths_and_need_the_smolvla_workload() {
+        assert!(RunConfig::default().own_datasets.is_empty());
+        let cfg = RunConfig::default().with_overrides("own-datasets=data/own-a,data/own-b").unwrap();
+        assert_eq!(cfg.own_datasets, ["data/own-a", "data/own-b"]);
+        let err = RunConfig::default().with_overrides("workload=linreg own-datasets=data/own-a").unwrap_err();
+        assert!(err.to_string().contains("own-datasets needs the smolvla workload"), "{err}");
+    }
+
+    #[test]
     fn dataset_tasks_default_to_the_first_task_take_a_list_and_refuse_unknown_names() {
         use fedvla_sim::TaskKind;
         assert_eq!(RunConfig::default().dataset_tasks, [TaskKind::CubeInBowl]);

@@ -3,16 +3,14 @@
 //! machine, into the shard the shared trainer reads. Only its signature, its claimed size and the moments of its
 //! state and action reach the server (see [`fedvla_federation::DataReport`]); no frame, state or action does.
 
-use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use fedvla_data::{
-    ClientShard, LeRobotDataset, PartitionConfig, PartitionStrategy, ShardSpec, build_shard, episode_tasks, partition,
+    ClientShard, LeRobotDataset, PartitionConfig, PartitionStrategy, build_shard, episode_tasks, partition,
 };
 use fedvla_federation::{BoxError, DatasetSignature};
-use fedvla_learner::examples::dataset_signature;
-use fedvla_policy::tokenizer::PAD_ID;
+use fedvla_learner::examples::{dataset_signature, shard_spec, task_token_ids};
 use fedvla_policy::{SmolVlaConfig, Tokenizer};
 
 /// Share of the dataset's episodes the volunteer keeps for its own held-out evaluation (as a server shard does).
@@ -50,25 +48,9 @@ pub fn pack_own_dataset(
     };
     let parts =
         partition(&episode_tasks(&dataset), &config).map_err(|e| format!("own dataset {}: {e}", root.display()))?;
-    let (w, h) = cfg.resize_imgs_with_padding;
-    let spec = ShardSpec {
-        image_width: w as u32,
-        image_height: h as u32,
-        tokenizer_max_length: cfg.tokenizer_max_length,
-        pad_token_id: PAD_ID as u32,
-    };
-    let task_ids = dataset
-        .tasks()
-        .iter()
-        .map(String::as_str)
-        .chain([""])
-        .map(|task| {
-            let (ids, _, _) = tokenizer
-                .encode_batch(&[task], cfg.tokenizer_max_length, false)
-                .map_err(|e| format!("tokenizing the task {task:?} of {}: {e}", root.display()))?;
-            Ok((task.to_owned(), ids.into_iter().map(|i| i as u32).collect()))
-        })
-        .collect::<Result<BTreeMap<String, Vec<u32>>, BoxError>>()?;
+    let spec = shard_spec(cfg);
+    let task_ids =
+        task_token_ids(tokenizer, dataset.tasks(), cfg).map_err(|e| format!("own dataset {}: {e}", root.display()))?;
     let tokenize = |task: &str| -> Vec<u32> { task_ids.get(task).cloned().unwrap_or_default() };
     // Packed into a file of the volunteer's temporary directory, read back and removed: the shard reader and
     // writer are the ones server shards use.

@@ -2,13 +2,16 @@
 //! normalised with the dataset statistics the shard carries, LeRobot's `action_is_pad`, and the
 //! task's token ids.
 
-use fedvla_data::{ClientShard, DatasetInfo};
+use std::collections::BTreeMap;
+
+use fedvla_data::{ClientShard, DatasetInfo, ShardSpec};
 use fedvla_federation::data_report::{
     DataReport, DatasetSignature, FeatureMoments, NORMALISED_FEATURES, NormalizationStats, OwnDataset,
 };
 use fedvla_policy::batch::rgb_hwc_to_chw;
+use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::HostTensor;
-use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig};
+use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig, Tokenizer};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -40,6 +43,37 @@ pub fn shard_stats(shard: &ClientShard) -> Result<NormStats, PolicyError> {
         stats.features.insert(feature.into(), FeatureStats { mean: get("mean")?, std: get("std")? });
     }
     Ok(stats)
+}
+
+/// How a shard for a policy of `cfg` is packed: frames at its input size, tasks as token ids of its length.
+pub fn shard_spec(cfg: &SmolVlaConfig) -> ShardSpec {
+    let (w, h) = cfg.resize_imgs_with_padding;
+    ShardSpec {
+        image_width: w as u32,
+        image_height: h as u32,
+        tokenizer_max_length: cfg.tokenizer_max_length,
+        pad_token_id: PAD_ID as u32,
+    }
+}
+
+/// Every task of `tasks`, and "" (rows without one), as `tokenizer`'s ids for a policy of `cfg`: tokenized up
+/// front, so that a task the tokenizer refuses stops the packing of a shard, named.
+pub fn task_token_ids(
+    tokenizer: &Tokenizer,
+    tasks: &[String],
+    cfg: &SmolVlaConfig,
+) -> Result<BTreeMap<String, Vec<u32>>, PolicyError> {
+    tasks
+        .iter()
+        .map(String::as_str)
+        .chain([""])
+        .map(|task| {
+            let (ids, _, _) = tokenizer
+                .encode_batch(&[task], cfg.tokenizer_max_length, false)
+                .map_err(|e| PolicyError::Tokenizer(format!("tokenizing the task {task:?}: {e}")))?;
+            Ok((task.to_owned(), ids.into_iter().map(|i| i as u32).collect()))
+        })
+        .collect()
 }
 
 /// What a dataset must share with a run's for a policy to read both alike, from its `meta/info.json`: robot

@@ -13,19 +13,18 @@ use std::sync::{Arc, RwLock};
 use anyhow::Context;
 use burn::tensor::Device;
 use fedvla_data::{
-    ClientShard, ClientSplit, EpisodeTask, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, ShardSpec,
-    build_shard, episode_tasks, partition,
+    ClientShard, ClientSplit, EpisodeTask, LeRobotDataset, Partition, PartitionConfig, PartitionStrategy, build_shard,
+    episode_tasks, partition,
 };
 use fedvla_federation::data_report::NORMALISED_FEATURES;
 use fedvla_federation::{
     BoxError, DatasetSignature, Evaluator, FeatureSummary, NamedTensors, NormalizationStats, StatsSource,
 };
-use fedvla_learner::examples::{dataset_signature, norm_stats};
+use fedvla_learner::examples::{dataset_signature, norm_stats, shard_spec, task_token_ids};
 use fedvla_learner::rollout::SimTasks;
 use fedvla_learner::tensors::to_named;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
-use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::{init_random, safetensors_bytes_as};
 use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
 use fedvla_sim::{Arrangement, TaskKind};
@@ -338,27 +337,9 @@ impl SmolVlaWorkload {
         };
         let parts = partition(&episodes_to_partition(config, &root, &dataset)?, &partition_config)?;
         std::fs::create_dir_all(shard_dir).with_context(|| format!("creating {}", shard_dir.display()))?;
-        let (w, h) = cfg.resize_imgs_with_padding;
-        let spec = ShardSpec {
-            image_width: w as u32,
-            image_height: h as u32,
-            tokenizer_max_length: cfg.tokenizer_max_length,
-            pad_token_id: PAD_ID as u32,
-        };
-        // Every task string tokenized up front (and "" for rows without one), so a tokenizer error stops the
-        // run here, naming the task.
-        let task_ids: BTreeMap<&str, Vec<u32>> = dataset
-            .tasks()
-            .iter()
-            .map(String::as_str)
-            .chain([""])
-            .map(|task| {
-                let (ids, _, _) = tokenizer
-                    .encode(task, cfg.tokenizer_max_length, false)
-                    .with_context(|| format!("tokenizing the dataset's task {task:?}"))?;
-                anyhow::Ok((task, ids.into_iter().map(|i| i as u32).collect()))
-            })
-            .collect::<anyhow::Result<_>>()?;
+        let spec = shard_spec(&cfg);
+        let task_ids =
+            task_token_ids(&tokenizer.tokenizer(), dataset.tasks(), &cfg).context("tokenizing the dataset's tasks")?;
         let tokenize = |task: &str| -> Vec<u32> { task_ids.get(task).cloned().unwrap_or_default() };
         let length: BTreeMap<usize, usize> = dataset.episodes().iter().map(|e| (e.episode_index, e.length)).collect();
         // Every episode is decoded once per shard it lands in; with hundreds of episodes that takes minutes.

@@ -4,7 +4,6 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use fedvla_learner::rollout::TaskTokens;
 use fedvla_policy::policy_dir::Backbone;
 use fedvla_policy::{PolicyDir, Tokenizer, WordTokenizer};
 
@@ -49,13 +48,6 @@ impl RunTokenizer {
             Self::Generated(word) => word.vocab_size(),
             Self::Checkpoint { tokenizer, .. } => tokenizer.vocab_size(),
         }
-    }
-
-    pub(super) fn encode(&self, task: &str, max_length: usize, pad_to_max: bool) -> anyhow::Result<TaskTokens> {
-        Ok(match self {
-            Self::Generated(word) => word.encode_batch(&[task], max_length, pad_to_max),
-            Self::Checkpoint { tokenizer, .. } => tokenizer.encode_batch(&[task], max_length, pad_to_max)?,
-        })
     }
 
     /// Which tokenizer this is, for a person reading the run's start or an error.

@@ -1,5 +1,6 @@
-// The join page: consent, the Join button, live status drawn from the wasm volunteer's reports, and automatic
-// reconnection (with the cached downloads, a reconnect costs only the WebSocket handshake).
+// The join page: consent, the Join button, the volunteer's key (a random seed kept in IndexedDB, one per name),
+// live status drawn from the wasm volunteer's reports, and automatic reconnection (with the cached downloads, a
+// reconnect costs only the WebSocket handshake).
 import init, { run_volunteer } from "./pkg/fedvla_client_wasm.js";
 
 const $ = (id) => document.getElementById(id);
@@ -34,12 +35,35 @@ async function describeWebGpu() {
   }
 }
 
+// The 32-byte seed of this browser's key pair for `name`, made (from the browser's CSPRNG) and stored on first use.
+// The server binds the name, the shard and the volunteer's state to the key: without it, the name is another's.
+function volunteerSeed(name) {
+  return new Promise((resolve, reject) => {
+    const open = indexedDB.open("fedvla", 1);
+    open.onupgradeneeded = () => open.result.createObjectStore("keys");
+    open.onerror = () => reject(open.error);
+    open.onsuccess = () => {
+      const store = () => open.result.transaction("keys", "readwrite").objectStore("keys");
+      const get = store().get(name);
+      get.onerror = () => reject(get.error);
+      get.onsuccess = () => {
+        if (get.result) return resolve(get.result);
+        const seed = crypto.getRandomValues(new Uint8Array(32));
+        const put = store().add(seed, name);
+        put.onerror = () => reject(put.error);
+        put.onsuccess = () => resolve(seed);
+      };
+    };
+  });
+}
+
 const fmtBytes = (n) => n >= 1 << 20 ? (n / (1 << 20)).toFixed(1) + " MiB" : n >= 1024 ? (n / 1024).toFixed(1) + " KiB" : n + " B";
 
 const state = { contributions: 0, up: 0, down: 0, gpu: "", reconnectDelay: RECONNECT_MIN_MS };
 
 function show(kind, s) {
   switch (kind) {
+    case "identity": $("public-key").textContent = s.public_key; break;
     case "stage": $("stage").textContent = s.stage; break;
     case "setup": $("stage").textContent = `assigned shard ${s.shard} of ${s.shards}`; break;
     case "download":
@@ -100,12 +124,13 @@ async function volunteer() {
   $("device").textContent = state.gpu;
   await init();
   const name = volunteerName();
+  const seed = await volunteerSeed(name);
   for (;;) {
     $("connection").textContent = "connecting";
     $("message").textContent = "";
     $("message").className = "";
     try {
-      await run_volunteer(location.origin, name, $("rollout"), maxBuffer, (json) => {
+      await run_volunteer(location.origin, name, seed, $("rollout"), maxBuffer, (json) => {
         const status = JSON.parse(json);
         show(status.kind, status);
       });

@@ -1,5 +1,6 @@
-//! Downloads with progress, cached in the browser's Cache API by a version key, so the frozen weights and the
-//! shard cross the network once per version however often the page reloads.
+//! Downloads with progress, each presenting the volunteer's session, cached in the browser's Cache API by a
+//! version key, so the frozen weights and the shard cross the network once per version however often the page
+//! reloads.
 
 use js_sys::{Reflect, Uint8Array};
 use wasm_bindgen::JsCast;
@@ -30,11 +31,19 @@ async fn response_bytes(response: &Response) -> Result<Vec<u8>, JsValue> {
     Ok(Uint8Array::new(&buffer).to_vec())
 }
 
-/// `GET url`, reading the body chunk by chunk and reporting `(received, total)` bytes (total 0 when unknown).
-pub async fn fetch_with_progress(url: &str, mut on_progress: impl FnMut(u64, u64)) -> Result<Vec<u8>, JsValue> {
+/// `GET url` with `Authorization: Bearer <session>`, reading the body chunk by chunk and reporting
+/// `(received, total)` bytes (total 0 when unknown).
+pub async fn fetch_with_progress(
+    url: &str,
+    session: &str,
+    mut on_progress: impl FnMut(u64, u64),
+) -> Result<Vec<u8>, JsValue> {
     let fetch = Reflect::get(&js_sys::global(), &"fetch".into())?.unchecked_into::<js_sys::Function>();
+    let (init, headers) = (js_sys::Object::new(), js_sys::Object::new());
+    Reflect::set(&headers, &"authorization".into(), &format!("Bearer {session}").into())?;
+    Reflect::set(&init, &"headers".into(), &headers)?;
     let response: Response =
-        JsFuture::from(fetch.call1(&JsValue::NULL, &url.into())?.unchecked_into::<js_sys::Promise>())
+        JsFuture::from(fetch.call2(&JsValue::NULL, &url.into(), &init)?.unchecked_into::<js_sys::Promise>())
             .await?
             .dyn_into()?;
     if !response.ok() {
@@ -57,8 +66,14 @@ pub async fn fetch_with_progress(url: &str, mut on_progress: impl FnMut(u64, u64
 }
 
 /// The bytes at `url`, from the cache under `key` when a previous visit stored them, else downloaded (with
-/// progress) and stored. `key` must change whenever the content does (it carries a content hash).
-pub async fn cached(url: &str, key: &str, on_progress: impl FnMut(u64, u64)) -> Result<(Vec<u8>, Source), JsValue> {
+/// progress, presenting `session`) and stored. `key` must change whenever the content does (it carries a content
+/// hash).
+pub async fn cached(
+    url: &str,
+    key: &str,
+    session: &str,
+    on_progress: impl FnMut(u64, u64),
+) -> Result<(Vec<u8>, Source), JsValue> {
     let cache = open_cache().await;
     if let Some(cache) = &cache {
         let hit = JsFuture::from(cache.match_with_str(key)).await?;
@@ -66,7 +81,7 @@ pub async fn cached(url: &str, key: &str, on_progress: impl FnMut(u64, u64)) -> 
             return Ok((response_bytes(&response).await?, Source::Cache));
         }
     }
-    let bytes = fetch_with_progress(url, on_progress).await?;
+    let bytes = fetch_with_progress(url, session, on_progress).await?;
     if let Some(cache) = &cache {
         let mut copy = bytes.clone();
         let response = Response::new_with_opt_u8_array(Some(&mut copy))?;

@@ -53,8 +53,9 @@ impl ClientTransport for BrowserTransport {
         }
     }
 
-    async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
-        fetch_with_progress(&self.url(&routes::model(version)), |_, _| {}).await.map_err(|e| format!("{e:?}").into())
+    async fn fetch_model(&mut self, version: u64, session: &str) -> Result<Vec<u8>, BoxError> {
+        let url = self.url(&routes::model(version));
+        fetch_with_progress(&url, session, |_, _| {}).await.map_err(|e| format!("{e:?}").into())
     }
 
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {

@@ -1,16 +1,18 @@
-//! `run_volunteer`, the page's entry point: download what the server offers (cached by version), build the
-//! SmolVLA trainer, join over the WebSocket and run the shared round loop until the run finishes or the
-//! connection drops (the page then reconnects).
+//! `run_volunteer`, the page's entry point: prove the volunteer's key over the WebSocket (the page keeps its seed
+//! in IndexedDB), download what the admission offers with its session (cached by version), build the SmolVLA
+//! trainer, join and run the shared round loop until the run finishes or the connection drops (the page then
+//! reconnects).
 
 use burn::tensor::Device;
+use fedvla_federation::identity::SEED_BYTES;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, LocalTrainer, NamedTensors, RolloutOutput,
-    RolloutRequest, RoundTask, TrainOutput, run_client,
+    Admission, BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, Identity, Introduction, LocalTrainer,
+    NamedTensors, RolloutOutput, RolloutRequest, RoundTask, TrainOutput, identify, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::rollout::Episode;
 use fedvla_learner::trainer::rollout_episode;
-use fedvla_learner::volunteer::{Fetch, fetch_setup, policy_config, smolvla_volunteer};
+use fedvla_learner::volunteer::{Fetch, policy_config, smolvla_volunteer};
 use serde_json::json;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
@@ -70,26 +72,35 @@ fn boxed(e: JsValue) -> BoxError {
         .into()
 }
 
-/// Joins the federation served at `origin` as `name`, drawing rollouts on `canvas` and reporting every change to
-/// `on_status` (one JSON string per call). `max_buffer_bytes` is the WebGPU adapter's
-/// `maxStorageBufferBindingSize` (0 when the page found no adapter). Resolves with the run's summary when the
-/// server finishes the run; rejects with a message when anything fails (the page shows it and reconnects).
+/// Joins the federation served at `origin` as `name` with the key pair of the 32-byte `seed` (the page keeps it in
+/// IndexedDB), drawing rollouts on `canvas` and reporting every change to `on_status` (one JSON string per
+/// call). `max_buffer_bytes` is the WebGPU adapter's `maxStorageBufferBindingSize` (0 when the page found no
+/// adapter). Resolves with the run's summary when the server finishes the run; rejects with a message when
+/// anything fails (the page shows it and reconnects).
 #[wasm_bindgen]
 pub async fn run_volunteer(
     origin: String,
     name: String,
+    seed: Vec<u8>,
     canvas: HtmlCanvasElement,
     max_buffer_bytes: f64,
     on_status: js_sys::Function,
 ) -> Result<JsValue, JsValue> {
     let status = StatusSink::new(on_status);
     let started = now_seconds();
-    let mut trainer = prepare(&origin, &name, canvas, max_buffer_bytes, started, &status)
+    let seed: [u8; SEED_BYTES] =
+        seed.try_into().map_err(|s: Vec<u8>| js_error(format!("a key seed of {} bytes, not {SEED_BYTES}", s.len())))?;
+    let identity = Identity::from_seed(seed);
+    status.send("identity", json!({ "public_key": identity.public_key_hex() }));
+    let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
+    status.send("stage", json!({ "stage": "identifying" }));
+    let intro = Introduction { name, auth_token: None, shard: None, own_dataset: false };
+    let admission = identify(&mut transport, &identity, &intro).await.map_err(|e| js_error(format!("{e}")))?;
+    let mut trainer = prepare(&origin, &intro.name, &admission, canvas, max_buffer_bytes, started, &status)
         .await
         .map_err(|e| js_error(format!("{e}")))?;
-    let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
     let data = Some(trainer.inner.examples().data_report(None));
-    let options = ClientOptions { name: name.clone(), auth_token: None, shard: Some(trainer.shard_index), data };
+    let options = ClientOptions { session: admission.session, data };
     let sink = status.clone();
     let summary = run_client(&mut transport, &mut trainer, &options, move |event| report(&sink, event))
         .await
@@ -104,50 +115,47 @@ pub async fn run_volunteer(
     Ok(JsValue::from_str(&summary.to_string()))
 }
 
-/// Downloads the setup, the frozen weights, the shard and the global model, and builds the trainer (the shared
-/// start-up, over the page's fetch).
+/// Downloads the frozen weights, the shard and the global model the admission's setup names, with its session,
+/// and builds the trainer (the shared start-up, over the page's fetch).
 async fn prepare(
     origin: &str,
     name: &str,
+    admission: &Admission,
     canvas: HtmlCanvasElement,
     max_buffer_bytes: f64,
     started: f64,
     status: &StatusSink,
 ) -> Result<BrowserTrainer, BoxError> {
-    let fetch = PageFetch { origin, status };
-    status.send("stage", json!({ "stage": "setup" }));
-    // The name keeps a returning volunteer on its shard (and so on its cached copy of it).
-    let setup = fetch_setup(&fetch, name, None).await?;
+    let (setup, session) = (&admission.setup, admission.session.as_str());
+    let fetch = PageFetch { origin, session, status };
+    // The key keeps a returning volunteer on its shard (and so on its cached copy of it).
     status.send(
         "setup",
         json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version }),
     );
-    let largest_tensor = policy_config(&setup)?.param_specs().iter().map(|p| p.numel() * 4).max().unwrap_or(0);
+    let largest_tensor = policy_config(setup)?.param_specs().iter().map(|p| p.numel() * 4).max().unwrap_or(0);
     let (device, backend) = training_device(status, max_buffer_bytes, largest_tensor).await;
     status.send("device", json!({ "backend": backend }));
-    let inner = smolvla_volunteer(&fetch, &setup, name, &device, &backend).await?;
+    let inner = smolvla_volunteer(&fetch, setup, name, &device, &backend).await?;
     let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;
-    Ok(BrowserTrainer {
-        inner,
-        shard_index: setup.shard_index,
-        status: status.clone(),
-        view,
-        started,
-        first_step_reported: false,
-    })
+    Ok(BrowserTrainer { inner, status: status.clone(), view, started, first_step_reported: false })
 }
 
-/// Downloads from the page's server with progress on the page, kept in the Cache API under their content key.
+/// Downloads from the page's server with the admission's session, with progress on the page, kept in the Cache
+/// API under their content key.
 struct PageFetch<'a> {
     origin: &'a str,
+    session: &'a str,
     status: &'a StatusSink,
 }
 
 impl Fetch for PageFetch<'_> {
     async fn get(&self, path: &str, what: &str, cache_key: Option<&str>) -> Result<Vec<u8>, BoxError> {
         let url = format!("{}{path}", self.origin.trim_end_matches('/'));
-        let Some(key) = cache_key else { return fetch_with_progress(&url, |_, _| {}).await.map_err(boxed) };
-        let (bytes, source) = cached(&url, key, |received, total| {
+        let Some(key) = cache_key else {
+            return fetch_with_progress(&url, self.session, |_, _| {}).await.map_err(boxed);
+        };
+        let (bytes, source) = cached(&url, key, self.session, |received, total| {
             self.status.send("download", json!({ "what": what, "received": received, "total": total }));
         })
         .await
@@ -163,8 +171,6 @@ impl Fetch for PageFetch<'_> {
 /// The shared SmolVLA trainer with the page's progress and an in-page, filmed sim.
 struct BrowserTrainer {
     inner: SmolVlaTrainer,
-    /// The shard the setup assigned, announced on join.
-    shard_index: u32,
     status: StatusSink,
     view: CanvasView,
     /// When `run_volunteer` started, for the time-to-first-step figure.

@@ -14,13 +14,13 @@ use fedvla_aggregator::config::RunConfig;
 use fedvla_aggregator::records::{MetricsLine, read_metrics};
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_app::server;
-use fedvla_federation::{ClientEvent, ClientOptions, run_client};
+use fedvla_federation::{ClientEvent, ClientOptions, Introduction, identify, run_client};
 use fedvla_workloads::linreg::{LinRegTrainer, LinRegWorkload};
 use fedvla_workloads::workload::server_parts;
 use serde::{Deserialize, Serialize};
 use tokio::net::TcpListener;
 
-use crate::native_client::NativeTransport;
+use crate::native_client::{NativeTransport, simulated_identity};
 use crate::runs::boxed;
 
 /// At most this many volunteers: each is two sockets of this one process.
@@ -223,15 +223,18 @@ fn load_config(
     Ok((config, raised))
 }
 
-/// Volunteer `load-<i>` on shard i mod [`SHARDS`] until the run finishes, recording its events.
+/// Volunteer `load-<i>` on the shard the server binds to its key (round-robin: i mod [`SHARDS`]) until the run
+/// finishes, recording its events.
 async fn volunteer(url: String, i: usize, partitioning: fedvla_aggregator::config::Partitioning) -> VolunteerLog {
-    let shard = i % SHARDS;
     let mut events = Vec::new();
     let result = async {
         let mut transport = NativeTransport::connect(&url).await.map_err(|e| format!("connect: {e}"))?;
-        let mut trainer = LinRegTrainer::new(shard, partitioning);
-        let options =
-            ClientOptions { name: format!("load-{i}"), auth_token: None, shard: Some(shard as u32), data: None };
+        let name = format!("load-{i}");
+        let intro = Introduction { name: name.clone(), auth_token: None, shard: None, own_dataset: false };
+        let admission =
+            identify(&mut transport, &simulated_identity(&name), &intro).await.map_err(|e| format!("identify: {e}"))?;
+        let mut trainer = LinRegTrainer::new(admission.setup.shard_index as usize, partitioning);
+        let options = ClientOptions { session: admission.session, data: None };
         let record = |event| events.push((Instant::now(), event));
         run_client(&mut transport, &mut trainer, &options, record).await.map_err(|e| e.to_string())?;
         Ok::<_, String>(())

@@ -1,7 +1,9 @@
 //! The native volunteer: its I/O (tokio-tungstenite for the WebSocket, HTTP/1.1 requests with hyper for the
 //! shared start-up's downloads ([`Fetch`]) and its uploads, each over TCP or, for `https://` and `wss://`
-//! servers, TLS ([`Dialer`])) and [`volunteer`], what `fedvla join` and every client of `fedvla simulate` run:
-//! the same downloads and round loop as the browser's, on a server shard or on the volunteer's own dataset.
+//! servers, TLS ([`Dialer`]); its key pair, kept in a file under the user's config directory
+//! ([`stored_identity`])) and [`volunteer`], what `fedvla join` and every client of `fedvla simulate` run: the
+//! same identity handshake, downloads and round loop as the browser's, on a server shard or on the volunteer's own
+//! dataset.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -9,14 +11,14 @@ use std::time::Instant;
 
 use burn::tensor::Device;
 use fedvla_aggregator::config::{AttackKind, Partitioning};
+use fedvla_federation::identity::SEED_BYTES;
 use fedvla_federation::{
-    BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, LocalTrainer, OwnDataset, Video,
-    WorkloadKind, fnv1a, routes, run_client,
+    Admission, BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, Identity, Introduction,
+    LocalTrainer, OwnDataset, Video, WorkloadKind, fnv1a, identify, routes, run_client,
 };
 use fedvla_learner::feature_cache::DEFAULT_SPILL_BYTES;
 use fedvla_learner::volunteer::{
-    Fetch, fetch_own_data_setup, fetch_setup, fetch_tokenizer, policy_config, smolvla_volunteer, smolvla_volunteer_on,
-    volunteer_seed,
+    Fetch, fetch_tokenizer, policy_config, smolvla_volunteer, smolvla_volunteer_on, volunteer_seed,
 };
 use fedvla_workloads::linreg::LinRegTrainer;
 use fedvla_workloads::sim_eval::FilmedRollouts;
@@ -113,8 +115,8 @@ pub async fn http_request(
 pub struct NativeTransport {
     ws: WebSocketStream<Connection>,
     dialer: Dialer,
-    /// The run's auth token, presented with every download (a run that has one serves nothing without it).
-    auth_token: Option<String>,
+    /// The admission's session, presented with every download of the start-up.
+    session: Option<String>,
     started: Instant,
 }
 
@@ -143,23 +145,26 @@ impl NativeTransport {
         let scheme = if dialer.is_tls() { "wss" } else { "ws" };
         let url = format!("{scheme}://{authority}{}", routes::WS);
         let (ws, _) = tokio_tungstenite::client_async_with_config(url, dialer.connect().await?, None).await?;
-        Ok(Self { ws, dialer, auth_token: None, started: Instant::now() })
+        Ok(Self { ws, dialer, session: None, started: Instant::now() })
     }
 
-    /// Presents `auth_token` with every download.
-    pub fn with_auth_token(mut self, auth_token: Option<String>) -> Self {
-        self.auth_token = auth_token;
+    /// Presents `session` (the admission's) with every download of the start-up.
+    pub fn with_session(mut self, session: &str) -> Self {
+        self.session = Some(session.to_owned());
         self
+    }
+
+    /// `GET path` presenting `session`.
+    async fn get_with(&self, path: &str, session: &str) -> Result<Vec<u8>, BoxError> {
+        let request = hyper::Request::get(path).header(hyper::header::AUTHORIZATION, format!("Bearer {session}"));
+        http_request(&self.dialer, request, Bytes::new()).await
     }
 }
 
 impl Fetch for NativeTransport {
     async fn get(&self, path: &str, what: &str, _cache_key: Option<&str>) -> Result<Vec<u8>, BoxError> {
-        let mut request = hyper::Request::get(path);
-        if let Some(token) = &self.auth_token {
-            request = request.header(hyper::header::AUTHORIZATION, format!("Bearer {token}"));
-        }
-        let bytes = http_request(&self.dialer, request, Bytes::new()).await?;
+        let session = self.session.as_deref().ok_or("no session yet: identify before downloading")?;
+        let bytes = self.get_with(path, session).await?;
         tracing::debug!(what, bytes = bytes.len(), "downloaded");
         Ok(bytes)
     }
@@ -188,14 +193,12 @@ impl ClientTransport for NativeTransport {
         }
     }
 
-    async fn fetch_model(&mut self, version: u64) -> Result<Vec<u8>, BoxError> {
-        self.get(&routes::model(version)).await
+    async fn fetch_model(&mut self, version: u64, session: &str) -> Result<Vec<u8>, BoxError> {
+        self.get_with(&routes::model(version), session).await
     }
 
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
-        let request = hyper::Request::get(routes::correction(round))
-            .header(hyper::header::AUTHORIZATION, format!("Bearer {session}"));
-        http_request(&self.dialer, request, Bytes::new()).await
+        self.get_with(&routes::correction(round), session).await
     }
 
     async fn upload_video(&mut self, round: u64, session: &str, video: Video) -> Result<(), BoxError> {
@@ -225,24 +228,37 @@ pub struct Volunteer<'a> {
     pub server: &'a str,
     pub ca_cert: Option<&'a Path>,
     pub name: &'a str,
+    /// The key pair it proves on joining.
+    pub identity: &'a Identity,
     pub data: VolunteerData<'a>,
     pub auth_token: Option<String>,
     /// Corrupts its updates (simulations only).
     pub attack: Option<Attack>,
 }
 
-/// `v` until the run finishes: fetches its setup, builds the trainer the server's workload needs from what it
-/// downloads (and, with its own dataset, from that), and runs the shared round loop, reporting to `on_event`.
+/// `v` until the run finishes: proves its key and is admitted with its setup, builds the trainer the server's
+/// workload needs from what it downloads with the admission's session (and, with its own dataset, from that),
+/// and runs the shared round loop, reporting to `on_event`.
 pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> Result<ClientSummary, BoxError> {
-    let Volunteer { server, ca_cert, name, data, auth_token, attack } = v;
-    let mut transport = NativeTransport::connect_trusting(server, ca_cert).await?.with_auth_token(auth_token.clone());
-    let setup = match data {
-        VolunteerData::Shard(shard) => fetch_setup(&transport, name, shard).await?,
-        VolunteerData::Own(_) => fetch_own_data_setup(&transport, name).await?,
+    let Volunteer { server, ca_cert, name, identity, data, auth_token, attack } = v;
+    let intro = Introduction {
+        name: name.to_owned(),
+        auth_token,
+        shard: match data {
+            VolunteerData::Shard(shard) => shard,
+            VolunteerData::Own(_) => None,
+        },
+        own_dataset: matches!(data, VolunteerData::Own(_)),
     };
-    tracing::info!(workload = ?setup.workload, shard = setup.shard_index, of = setup.shard_count, "volunteer setup");
-    let shard = matches!(data, VolunteerData::Shard(_)).then_some(setup.shard_index);
-    let mut options = ClientOptions { name: name.to_owned(), auth_token, shard, data: None };
+    let (mut transport, Admission { client_id, session, setup }) = admitted(server, ca_cert, identity, &intro).await?;
+    tracing::info!(
+        client_id,
+        workload = ?setup.workload,
+        shard = setup.shard_index,
+        of = setup.shard_count,
+        "admitted"
+    );
+    let mut options = ClientOptions { session, data: None };
     match setup.workload {
         WorkloadKind::Linreg => {
             if let VolunteerData::Own(root) = data {
@@ -297,6 +313,19 @@ fn feature_cache_dir() -> PathBuf {
     base.join("fedvla").join("features")
 }
 
+/// A connection to `server` (trusting `ca_cert` besides the Mozilla roots) on which `identity` proved itself as
+/// `intro` says, and the admission; the transport presents the admission's session with every download.
+pub async fn admitted(
+    server: &str,
+    ca_cert: Option<&Path>,
+    identity: &Identity,
+    intro: &Introduction,
+) -> Result<(NativeTransport, Admission), BoxError> {
+    let mut transport = NativeTransport::connect_trusting(server, ca_cert).await?;
+    let admission = identify(&mut transport, identity, intro).await?;
+    Ok((transport.with_session(&admission.session), admission))
+}
+
 /// Whether `attack` poisons the volunteer's data before it trains.
 fn poisons_labels(attack: Option<Attack>) -> bool {
     attack.is_some_and(|a| a.kind == AttackKind::LabelShuffle)
@@ -314,4 +343,58 @@ async fn run_as(
         Some(attack) => run_client(transport, &mut Attacker::new(trainer, attack), options, on_event).await?,
         None => run_client(transport, &mut trainer, options, on_event).await?,
     })
+}
+
+/// The key pair of volunteer `name` on this machine: `fedvla/keys/<name>.key` under `$XDG_CONFIG_HOME` (or
+/// `~/.config`), its secret seed in hex, readable by the user alone; made on first use. Copy the file to join as the
+/// same volunteer from another machine.
+pub fn stored_identity(name: &str) -> Result<(Identity, PathBuf), BoxError> {
+    let config = match std::env::var_os("XDG_CONFIG_HOME").filter(|dir| !dir.is_empty()) {
+        Some(dir) => PathBuf::from(dir),
+        None => {
+            PathBuf::from(std::env::var_os("HOME").ok_or("neither XDG_CONFIG_HOME nor HOME is set")?).join(".config")
+        }
+    };
+    // Names may hold any printable character: the file name keeps the safe ones and escapes the others.
+    let file: String = name
+        .bytes()
+        .map(|b| match b {
+            b'a'..=b'z' | b'A'..=b'Z' | b'0'..=b'9' | b'-' | b'_' => char::from(b).to_string(),
+            other => format!("%{other:02X}"),
+        })
+        .collect();
+    let path = config.join("fedvla").join("keys").join(format!("{file}.key"));
+    let identity = match std::fs::read_to_string(&path) {
+        Ok(text) => Identity::from_seed_hex(&text).map_err(|e| format!("{}: {e}", path.display()))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let identity = Identity::from_seed_hex(&fedvla_aggregator::sessions::random_hex::<SEED_BYTES>())?;
+            write_private(&path, &identity.seed_hex()).map_err(|e| format!("{}: {e}", path.display()))?;
+            identity
+        }
+        Err(e) => return Err(format!("{}: {e}", path.display()).into()),
+    };
+    Ok((identity, path))
+}
+
+/// Writes `text` to a new file only its owner may read (`create_new`: never over another key).
+fn write_private(path: &Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    let mut file = options.open(path)?;
+    writeln!(file, "{text}")?;
+    file.sync_all()
+}
+
+/// A key pair derived from `name` alone, for `simulate`'s volunteers and tests: anyone who knows the name can make
+/// it, so never for a real volunteer. The same name gets the same key, so a resumed simulation keeps its shards.
+pub fn simulated_identity(name: &str) -> Identity {
+    use rand::{Rng, SeedableRng};
+    let seed: [u8; SEED_BYTES] = rand::rngs::StdRng::seed_from_u64(fnv1a(&format!("simulated {name}"))).random();
+    Identity::from_seed(seed)
 }

@@ -12,7 +12,7 @@ use fedvla_aggregator::config::RunConfig;
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_app::server::ServerHandle;
 use fedvla_federation::codec::encode_payload;
-use fedvla_federation::{ClientMessage, ErrorCode, PROTOCOL_VERSION, ServerMessage};
+use fedvla_federation::{ClientMessage, ErrorCode, ServerMessage};
 use fedvla_workloads::linreg;
 use serde_json::Value;
 
@@ -46,13 +46,13 @@ async fn joins_past_the_per_address_limit_are_refused_and_other_addresses_still_
         joined.push(RawClient::join(&handle, name).await.0);
     }
     let mut fourth = RawClient::connect(&handle).await;
-    fourth.send(&join_message("d", PROTOCOL_VERSION)).await;
-    expect_error(fourth.recv().await, ErrorCode::JoinRateLimited);
+    expect_error(fourth.identify(&simulated_identity("d"), "d", None).await, ErrorCode::JoinRateLimited);
     assert_eq!(fourth.recv().await, None, "closed after the refusal");
 
     let mut elsewhere = RawClient::connect_from(&handle, Ipv4Addr::new(127, 0, 0, 2)).await;
-    elsewhere.send(&join_message("e", PROTOCOL_VERSION)).await;
-    assert!(matches!(elsewhere.recv().await, Some(ServerMessage::Welcome { .. })), "another address joins");
+    let admitted = elsewhere.identify(&simulated_identity("e"), "e", None).await;
+    assert!(matches!(admitted, Some(ServerMessage::Admitted { .. })), "another address is admitted: {admitted:?}");
+    assert!(matches!(elsewhere.join_admitted().await, Some(ServerMessage::Welcome { .. })), "and joins");
     wait_status(&handle, |s| s.connected == 4).await;
     assert_eq!(refusals(&handle, ErrorCode::JoinRateLimited).await, 1);
     handle.kill();

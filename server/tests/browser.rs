@@ -14,9 +14,9 @@ use burn::tensor::Device;
 use fedvla_aggregator::config::RunConfig;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_app::server::{self, ServerHandle};
-use fedvla_federation::{ClientOptions, run_client};
-use fedvla_learner::volunteer::{fetch_setup, smolvla_volunteer};
-use fedvla_server::native_client::NativeTransport;
+use fedvla_federation::{Admission, ClientOptions, Introduction, run_client};
+use fedvla_learner::volunteer::smolvla_volunteer;
+use fedvla_server::native_client::{admitted, simulated_identity};
 use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
 use fedvla_workloads::smolvla::SmolVlaWorkload;
 use fedvla_workloads::workload::server_parts;
@@ -55,13 +55,13 @@ async fn start_server(tmp: &Path, overrides: &str) -> (ServerHandle, RunDir) {
 fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
     std::thread::spawn(move || {
         tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
-            let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
-            let setup = fetch_setup(&transport, "native-0", None).await.unwrap();
+            let intro = Introduction { name: "native-0".into(), auth_token: None, shard: None, own_dataset: false };
+            let (mut transport, Admission { session, setup, .. }) =
+                admitted(&format!("ws://{addr}"), None, &simulated_identity("native-0"), &intro).await.unwrap();
             let mut trainer = smolvla_volunteer(&transport, &setup, "native-0", &Device::flex().autodiff(), "cpu-flex")
                 .await
                 .unwrap();
-            let options =
-                ClientOptions { name: "native-0".into(), auth_token: None, shard: Some(setup.shard_index), data: None };
+            let options = ClientOptions { session, data: None };
             run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap();
         })
     })

@@ -179,9 +179,10 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     let handle = start(cfg, run_dir.clone()).await;
     let good_weight = linreg::initial_model(0).get(WEIGHT).unwrap().values.clone();
 
-    // Wrong protocol version on join: refused and disconnected.
+    // Wrong protocol version on identify: refused and disconnected.
     let mut c = RawClient::connect(&handle).await;
-    c.send(&join_message("old", PROTOCOL_VERSION + 1)).await;
+    let nonce = c.challenge().await;
+    c.send(&identify_message(&simulated_identity("old"), &nonce, "old", None, PROTOCOL_VERSION + 1)).await;
     expect_error(c.recv().await, ErrorCode::ProtocolVersion, &format!("protocol version {}", PROTOCOL_VERSION + 1));
     assert_eq!(c.recv().await, None, "connection closed after a fatal error");
 

@@ -17,7 +17,7 @@ use fedvla_federation::{
     PROTOCOL_VERSION, ServerMessage, StatsSource,
 };
 use fedvla_learner::examples::dataset_signature;
-use fedvla_server::native_client::{Volunteer, VolunteerData, volunteer};
+use fedvla_server::native_client::{Volunteer, VolunteerData, simulated_identity, volunteer};
 use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
 use futures_util::{SinkExt, StreamExt};
 use tokio_tungstenite::tungstenite::Message;
@@ -68,7 +68,16 @@ fn join(addr: &str, name: &str, data: Option<PathBuf>) -> std::thread::JoinHandl
                 Some(path) => VolunteerData::Own(path),
                 None => VolunteerData::Shard(Some(0)),
             };
-            let v = Volunteer { server: &addr, ca_cert: None, name: &name, data, auth_token: None, attack: None };
+            let identity = simulated_identity(&name);
+            let v = Volunteer {
+                server: &addr,
+                ca_cert: None,
+                name: &name,
+                identity: &identity,
+                data,
+                auth_token: None,
+                attack: None,
+            };
             volunteer(v, |_| {}).await.map_err(|e| e.to_string())
         })
     })
@@ -87,20 +96,31 @@ fn raw_join(port: u16, name: &str, dataset: &Path) -> (ErrorCode, String) {
         })
         .collect();
     let join = ClientMessage::Join {
-        protocol_version: PROTOCOL_VERSION,
-        auth_token: None,
-        name: name.into(),
         capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
-        shard: None,
         data: Some(DataReport { own: Some(OwnDataset { signature, train_examples: d.len() as u64 }), moments }),
     };
+    let identity = simulated_identity(name);
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     runtime.block_on(async {
         let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://127.0.0.1:{port}/ws")).await.unwrap();
-        ws.send(Message::text(serde_json::to_string(&join).unwrap())).await.unwrap();
         loop {
             match ws.next().await {
                 Some(Ok(Message::Text(text))) => match serde_json::from_str(text.as_str()).unwrap() {
+                    ServerMessage::Challenge { nonce } => {
+                        let identify = ClientMessage::Identify {
+                            protocol_version: PROTOCOL_VERSION,
+                            auth_token: None,
+                            name: name.into(),
+                            public_key: identity.public_key_hex(),
+                            signature: identity.prove(&nonce, name),
+                            shard: None,
+                            own_dataset: true,
+                        };
+                        ws.send(Message::text(serde_json::to_string(&identify).unwrap())).await.unwrap();
+                    }
+                    ServerMessage::Admitted { .. } => {
+                        ws.send(Message::text(serde_json::to_string(&join).unwrap())).await.unwrap();
+                    }
                     ServerMessage::Error { code, message } => return (code, message),
                     other => panic!("expected a refusal, got {other:?}"),
                 },

@@ -15,13 +15,13 @@ use fedvla_federation::RolloutOutput;
 use fedvla_federation::codec::HEADER_LEN;
 use fedvla_federation::protocol::RolloutRequest;
 use fedvla_federation::{
-    BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, LocalTrainer, NamedTensors, RoundTask,
-    TrainOutput, routes, run_client,
+    Admission, BoxError, Capabilities, ClientOptions, ClientSummary, EvalOutput, Introduction, LocalTrainer,
+    NamedTensors, RoundTask, TrainOutput, routes, run_client,
 };
 use fedvla_learner::ShardExamples;
-use fedvla_learner::volunteer::{fetch_setup, fetch_shard, smolvla_volunteer};
+use fedvla_learner::volunteer::{fetch_shard, smolvla_volunteer};
 use fedvla_policy::PolicyDir;
-use fedvla_server::native_client::NativeTransport;
+use fedvla_server::native_client::{admitted, simulated_identity};
 use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
 use fedvla_workloads::sim_eval::FilmedRollouts;
 use fedvla_workloads::smolvla::SmolVlaWorkload;
@@ -134,15 +134,17 @@ fn spawn_clients(
             let recorded = updates.clone();
             let thread = std::thread::spawn(move || {
                 tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap().block_on(async move {
-                    let mut transport = NativeTransport::connect(&format!("ws://{addr}")).await.unwrap();
                     let name = format!("client-{shard}");
-                    let setup = fetch_setup(&transport, &name, Some(shard)).await.unwrap();
+                    let intro =
+                        Introduction { name: name.clone(), auth_token: None, shard: Some(shard), own_dataset: false };
+                    let (mut transport, Admission { session, setup, .. }) =
+                        admitted(&format!("ws://{addr}"), None, &simulated_identity(&name), &intro).await.unwrap();
                     let device = Device::flex().autodiff();
                     let inner = FilmedRollouts(
                         smolvla_volunteer(&transport, &setup, &name, &device, "cpu-flex").await.unwrap(),
                     );
                     let mut trainer = Recording { inner, updates: recorded, hang_from_round };
-                    let options = ClientOptions { name, auth_token: None, shard: Some(shard), data: None };
+                    let options = ClientOptions { session, data: None };
                     run_client(&mut transport, &mut trainer, &options, |_| {}).await.unwrap()
                 })
             });
@@ -353,10 +355,21 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     let parts = server_parts(&workload, cfg, run_dir).unwrap();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let handle = server::start(parts, listener).unwrap();
-    let transport = NativeTransport::connect(&format!("ws://{}", handle.addr())).await.unwrap();
-    for index in 0..3 {
+    let url = format!("ws://{}", handle.addr());
+    // Shards are bound round-robin to volunteer keys, and a returning key keeps its shard.
+    let mut assigned = Vec::new();
+    let mut transports = Vec::new();
+    for name in ["ann", "bob", "cy", "dee", "bob", "ann"] {
+        let intro = Introduction { name: name.into(), auth_token: None, shard: None, own_dataset: false };
+        let (transport, admission) = admitted(&url, None, &simulated_identity(name), &intro).await.unwrap();
+        assigned.push(admission.setup.shard_index);
+        transports.push(transport);
+    }
+    assert_eq!(assigned, [0, 1, 2, 0, 1, 0]);
+    // Each downloads its own shard, checked against its manifest; another's is refused (403).
+    for (index, transport) in transports.iter().take(3).enumerate() {
         let (manifest, bytes) =
-            fetch_shard(&transport, &routes::shard(index as u32), &routes::shard_manifest(index as u32)).await.unwrap();
+            fetch_shard(transport, &routes::shard(index as u32), &routes::shard_manifest(index as u32)).await.unwrap();
         assert_eq!(bytes.len() as u64, manifest.file_bytes);
         assert_eq!(
             bytes,
@@ -365,14 +378,8 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
         let shard = fedvla_data::ClientShard::from_bytes(Path::new(&manifest.file), &bytes).unwrap();
         assert_eq!(shard.manifest.client_index, index);
     }
-    // Shards are assigned round-robin by volunteer name, and a returning name keeps its shard.
-    let mut assigned = Vec::new();
-    for name in ["ann", "bob", "cy", "dee", "bob", "ann"] {
-        assigned.push(fetch_setup(&transport, name, None).await.unwrap().shard_index);
-    }
-    assert_eq!(assigned, [0, 1, 2, 0, 1, 0]);
-    let missing = fetch_shard(&transport, &routes::shard(3), &routes::shard_manifest(3)).await.unwrap_err().to_string();
-    assert!(missing.contains("404") && missing.contains("no shard 3"), "{missing}");
+    let another = fetch_shard(&transports[0], &routes::shard(1), &routes::shard_manifest(1)).await.unwrap_err();
+    assert!(another.to_string().contains("403"), "{another}");
     handle.kill();
 }
 

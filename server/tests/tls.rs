@@ -8,8 +8,10 @@ use std::path::{Path, PathBuf};
 
 use common::*;
 use fedvla_aggregator::run_dir::RunDir;
-use fedvla_federation::{NamedTensors, routes};
-use fedvla_server::native_client::{Dialer, NativeTransport, Volunteer, VolunteerData, http_request, volunteer};
+use fedvla_federation::{Introduction, NamedTensors, routes};
+use fedvla_server::native_client::{
+    Dialer, NativeTransport, Volunteer, VolunteerData, admitted, http_request, simulated_identity, volunteer,
+};
 use hyper::body::Bytes;
 
 /// A self-signed certificate for 127.0.0.1 and its key, as PEM files in `dir`.
@@ -39,9 +41,12 @@ async fn volunteers_join_over_tls_and_nothing_else_gets_in() {
     let model = routes::model(0);
     let plain = Dialer::plain(&addr.to_string());
     assert!(http_request(&plain, hyper::Request::get(&model), Bytes::new()).await.is_err());
-    // Trusting it, a download works over HTTPS ...
-    let dialer = Dialer::tls(&addr.to_string(), "127.0.0.1", Some(&cert)).unwrap();
-    let weights = http_request(&dialer, hyper::Request::get(&model), Bytes::new()).await.unwrap();
+    // Trusting it, a volunteer is admitted over WSS and downloads over HTTPS with its session (one announcing an own
+    // dataset: it holds no shard the others ask for) ...
+    let intro = Introduction { name: "observer".into(), auth_token: None, shard: None, own_dataset: true };
+    let url = format!("wss://{addr}");
+    let (observer, _) = admitted(&url, Some(&cert), &simulated_identity("observer"), &intro).await.unwrap();
+    let weights = observer.get(&model).await.unwrap();
     assert!(NamedTensors::from_safetensors(&weights).is_ok());
 
     // ... and three volunteers run the federation over WSS, the server unmoved by the connections it refused.
@@ -51,8 +56,16 @@ async fn volunteers_join_over_tls_and_nothing_else_gets_in() {
             tokio::spawn(async move {
                 let name = format!("client-{shard}");
                 let data = VolunteerData::Shard(Some(shard));
-                let v =
-                    Volunteer { server: &url, ca_cert: Some(&cert), name: &name, data, auth_token: None, attack: None };
+                let identity = simulated_identity(&name);
+                let v = Volunteer {
+                    server: &url,
+                    ca_cert: Some(&cert),
+                    name: &name,
+                    identity: &identity,
+                    data,
+                    auth_token: None,
+                    attack: None,
+                };
                 volunteer(v, |_| {}).await.map_err(|e| e.to_string())
             })
         })

@@ -1,6 +1,7 @@
 //! What a stranger's input cannot do to the server: own or wrap the aggregate with example claims, end the run
 //! with an update that breaks the aggregate, hold sockets open, grow its memory, upload files nobody asked for,
-//! or swap volunteers' shards across a restart.
+//! swap volunteers' shards across a restart, take another volunteer's name, shard or state, download anything
+//! without a session (or another's shard with one), or join a closed federation without an admitted key.
 
 mod common;
 
@@ -10,7 +11,7 @@ use common::*;
 use fedvla_aggregator::registry::Registry;
 use fedvla_aggregator::registry::VOLUNTEERS_FILE;
 use fedvla_aggregator::run_dir::RunDir;
-use fedvla_federation::{ErrorCode, Evaluator, FedAvg, ServerMessage, TrainOutput, aggregate};
+use fedvla_federation::{ErrorCode, Evaluator, FedAvg, Identity, ServerMessage, TrainOutput, aggregate};
 use fedvla_server::native_client::{Volunteer, VolunteerData};
 use fedvla_workloads::linreg::{self, LinRegEvaluator};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -181,14 +182,26 @@ async fn slow_heads_silent_sockets_and_one_socket_too_many_are_closed() {
         assert!(closed_within(s, Duration::from_secs(2)).await, "a silent socket times out");
     }
     // The server serves others all along and after.
-    let (status, body) = http(&handle, "GET", "/api/volunteer?name=after", &[], Vec::new()).await;
-    assert_eq!(status, 200, "{body}");
     let token = format!("Bearer {}", handle.operator_token());
     let (status, body) = http(&handle, "GET", "/console/api/snapshot", &[("authorization", &token)], Vec::new()).await;
     assert_eq!(status, 200, "{body}");
     let snapshot: serde_json::Value = serde_json::from_str(&body).unwrap();
     assert!(snapshot["run"]["refused_connections"].as_u64().unwrap() >= 1, "{}", snapshot["run"]);
     handle.kill();
+}
+
+/// What the server answers `name` identifying with its name's simulated key, asking for `shard`.
+async fn admission(handle: &fedvla_app::server::ServerHandle, name: &str, shard: Option<u32>) -> Option<ServerMessage> {
+    RawClient::connect(handle).await.identify(&simulated_identity(name), name, shard).await
+}
+
+fn expect_refusal(answer: Option<ServerMessage>, code: ErrorCode, says: &str) {
+    match answer {
+        Some(ServerMessage::Error { code: got, message }) if got == code => {
+            assert!(message.contains(says), "{message:?} should say {says:?}");
+        }
+        other => panic!("expected {}, got {other:?}", code.as_str()),
+    }
 }
 
 #[tokio::test]
@@ -198,28 +211,20 @@ async fn names_are_bounded_and_the_registry_forgets_the_oldest() {
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     let long = "n".repeat(65);
-    let (status, body) = http(&handle, "GET", &format!("/api/volunteer?name={long}"), &[], Vec::new()).await;
-    assert_eq!(status, 400, "{body}");
-    assert!(body.contains("65 bytes"), "{body}");
-    let (status, body) = http(&handle, "GET", "/api/volunteer?name=x&shard=9", &[], Vec::new()).await;
-    assert_eq!(status, 400, "{body}");
-    assert!(body.contains("no shard 9"), "{body}");
-
+    expect_refusal(admission(&handle, &long, None).await, ErrorCode::InvalidName, "65 bytes");
+    expect_refusal(admission(&handle, "x", Some(9)).await, ErrorCode::UnknownShard, "no shard 9");
     let mut c = RawClient::connect(&handle).await;
-    c.send(&join_message(&long, fedvla_federation::PROTOCOL_VERSION)).await;
-    match c.recv().await {
-        Some(ServerMessage::Error { code: ErrorCode::InvalidName, .. }) => {}
-        other => panic!("expected invalid_name, got {other:?}"),
-    }
+    expect_refusal(c.identify(&simulated_identity(&long), &long, None).await, ErrorCode::InvalidName, "65 bytes");
     assert_eq!(c.recv().await, None, "closed after an invalid name");
 
     for name in ["a", "b", "c"] {
-        assert_eq!(http(&handle, "GET", &format!("/api/volunteer?name={name}"), &[], Vec::new()).await.0, 200);
+        assert!(matches!(admission(&handle, name, None).await, Some(ServerMessage::Admitted { .. })), "{name}");
     }
     let registry: Registry =
         serde_json::from_slice(&std::fs::read(run_dir.path().join(VOLUNTEERS_FILE)).unwrap()).unwrap();
-    let names: Vec<&str> = registry.assignments.keys().map(String::as_str).collect();
-    assert_eq!(names, ["b", "c"], "at most two names, the first bound forgotten");
+    let mut names: Vec<&str> = registry.volunteers.values().map(|b| b.name.as_str()).collect();
+    names.sort_unstable();
+    assert_eq!(names, ["b", "c"], "at most two keys, the first bound forgotten");
     handle.kill();
 }
 
@@ -253,9 +258,10 @@ async fn shards_and_client_ids_survive_a_restart() {
     let cfg = config("");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let shard_of = async |handle: &fedvla_app::server::ServerHandle, name: &str| -> u32 {
-        let (status, body) = http(handle, "GET", &format!("/api/volunteer?name={name}"), &[], Vec::new()).await;
-        assert_eq!(status, 200, "{body}");
-        serde_json::from_str::<fedvla_federation::VolunteerSetup>(&body).unwrap().shard_index
+        match admission(handle, name, None).await {
+            Some(ServerMessage::Admitted { setup, .. }) => setup.shard_index,
+            other => panic!("expected the admission of {name}, got {other:?}"),
+        }
     };
     let handle = start(cfg.clone(), run_dir.clone()).await;
     let mut before = Vec::new();
@@ -268,7 +274,7 @@ async fn shards_and_client_ids_survive_a_restart() {
 
     let (run_dir, cfg) = RunDir::open(run_dir.path()).unwrap();
     let handle = start(cfg, run_dir).await;
-    // Asked in the other order, each name gets its shard back.
+    // Asked in the other order, each key gets its shard back.
     for (name, shard) in [("z", 2), ("y", 1), ("x", 0)] {
         assert_eq!(shard_of(&handle, name).await, shard, "{name}");
     }
@@ -277,36 +283,154 @@ async fn shards_and_client_ids_survive_a_restart() {
     handle.kill();
 }
 
-/// A run with an auth token serves its data only to those who present it: every download route answers 401
-/// without it (or with a wrong one) and 200 with it; a whole federation of native volunteers holding the token
-/// runs to its end.
+/// Another key using a volunteer's name is refused (`name_taken`), and asking for its shard under another name too
+/// (`shard_taken`): it gets neither the shard nor the strategy state, which follows the shard bound to a key. With
+/// a session of its own it cannot download that shard (403); the volunteer, with its key, keeps name and shard,
+/// across a restart too.
 #[tokio::test]
-async fn downloads_of_a_run_with_an_auth_token_need_it() {
+async fn a_second_volunteer_using_anothers_name_gets_neither_its_shard_nor_its_state() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let alice = simulated_identity("alice");
+    let mallory = Identity::from_seed([0x66; 32]);
+    let mut a = RawClient::connect(&handle).await;
+    let Some(ServerMessage::Admitted { session: alice_session, setup, .. }) =
+        a.identify(&alice, "alice", Some(1)).await
+    else {
+        panic!("alice is admitted")
+    };
+    assert_eq!(setup.shard_index, 1);
+
+    let mut m = RawClient::connect(&handle).await;
+    expect_refusal(m.identify(&mallory, "alice", None).await, ErrorCode::NameTaken, "belongs to another key");
+    assert_eq!(m.recv().await, None, "closed after the refusal");
+    let mut m = RawClient::connect(&handle).await;
+    expect_refusal(m.identify(&mallory, "mallory", Some(1)).await, ErrorCode::ShardTaken, "shard 1");
+    // A signature for another challenge (a replayed one) proves nothing.
+    let mut m = RawClient::connect(&handle).await;
+    m.challenge().await;
+    let replayed = identify_message(&alice, "00", "alice", None, fedvla_federation::PROTOCOL_VERSION);
+    m.send(&replayed).await;
+    expect_refusal(m.recv().await, ErrorCode::Unauthorized, "identity not proven");
+
+    let mut m = RawClient::connect(&handle).await;
+    let Some(ServerMessage::Admitted { session: mallory_session, setup, .. }) =
+        m.identify(&mallory, "mallory", None).await
+    else {
+        panic!("mallory is admitted under a name of its own")
+    };
+    assert_ne!(setup.shard_index, 1, "round-robin never hands out a shard asked for by name");
+    let bearer = |session: &str| format!("Bearer {session}");
+    for path in ["/shard/1", "/shard/1/manifest"] {
+        let (status, body) =
+            http(&handle, "GET", path, &[("authorization", &bearer(&mallory_session))], Vec::new()).await;
+        assert_eq!(status, 403, "{path} with another key's session: {body}");
+        // linreg's shards are generated from their index, not files: alice passes the check and hears so.
+        let (status, body) =
+            http(&handle, "GET", path, &[("authorization", &bearer(&alice_session))], Vec::new()).await;
+        assert_eq!(status, 404, "{path} with its key's session: {body}");
+    }
+    handle.kill();
+
+    let (run_dir, cfg) = RunDir::open(run_dir.path()).unwrap();
+    let handle = start(cfg, run_dir).await;
+    expect_refusal(admission_as(&handle, &mallory, "alice").await, ErrorCode::NameTaken, "alice");
+    match admission_as(&handle, &alice, "alice").await {
+        Some(ServerMessage::Admitted { setup, .. }) => assert_eq!(setup.shard_index, 1, "alice keeps her shard"),
+        other => panic!("alice is admitted again, got {other:?}"),
+    }
+    handle.kill();
+}
+
+async fn admission_as(
+    handle: &fedvla_app::server::ServerHandle,
+    identity: &Identity,
+    name: &str,
+) -> Option<ServerMessage> {
+    RawClient::connect(handle).await.identify(identity, name, None).await
+}
+
+/// A closed federation (`allowed-keys`) admits the keys of its list and refuses any other, with the run's auth
+/// token or not.
+#[tokio::test]
+async fn a_closed_federation_admits_only_the_keys_of_its_allow_list() {
+    let base = tempfile::tempdir().unwrap();
+    let insider = simulated_identity("insider");
+    let list = base.path().join("allowed.txt");
+    std::fs::write(&list, format!("# the federation's volunteers\n{}\n\n", insider.public_key_hex().to_uppercase()))
+        .unwrap();
+    let cfg = config(&format!("allowed-keys={}", list.display()));
+    let handle = start(cfg.clone(), RunDir::create(base.path(), &cfg).unwrap()).await;
+    expect_refusal(admission(&handle, "outsider", None).await, ErrorCode::Unauthorized, "allow-list");
+    assert!(matches!(admission(&handle, "insider", None).await, Some(ServerMessage::Admitted { .. })));
+    handle.kill();
+}
+
+/// A run with an auth token serves nothing without a session: every download and upload route answers 401
+/// without one, with the auth token in its place or with a made-up one, and a session (which only an admission with
+/// the token gives) opens them; a whole federation of native volunteers holding the token runs to its end.
+#[tokio::test]
+async fn without_a_session_every_download_route_of_a_run_with_an_auth_token_answers_401() {
     let base = tempfile::tempdir().unwrap();
     let cfg = config("num-server-rounds=1 auth-token=s3cret");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
-    let routes = ["/api/volunteer?name=eve", "/shard/0", "/shard/0/manifest", "/model/0"];
-    for path in routes {
-        for headers in [&[][..], &[("authorization", "Bearer wrong")][..], &[("authorization", "s3cret")][..]] {
-            let (status, body) = http(&handle, "GET", path, headers, Vec::new()).await;
-            assert_eq!(status, 401, "{path} {headers:?}: {body}");
+    let routes = [
+        ("GET", "/shard/0"),
+        ("GET", "/shard/0/manifest"),
+        ("GET", "/model/0"),
+        ("GET", "/policy/frozen/0123456789abcdef"),
+        ("GET", "/api/tokenizer"),
+        ("GET", "/scaffold/1"),
+        ("POST", "/rollout/1/e.webm"),
+    ];
+    let unauthorised = [&[][..], &[("authorization", "Bearer s3cret")][..], &[("authorization", "Bearer 00ff")][..]];
+    for (method, path) in routes {
+        for headers in unauthorised {
+            let (status, body) = http(&handle, method, path, headers, vec![1; 8]).await;
+            assert_eq!(status, 401, "{method} {path} {headers:?}: {body}");
         }
-        let (status, body) = http(&handle, "GET", path, &[("authorization", "Bearer s3cret")], Vec::new()).await;
-        // linreg's shards are generated, not files: the server says so, but only to the token's holder.
-        assert!(status == 200 || (path.starts_with("/shard") && status == 404), "{path}: {status} {body}");
     }
+    // The identify needs the token; then the session opens the downloads (linreg has no shard files, frozen
+    // weights or tokenizer: the server says so, but only to a session's holder).
+    let mut c = RawClient::connect(&handle).await;
+    expect_refusal(c.identify(&simulated_identity("eve"), "eve", None).await, ErrorCode::Unauthorized, "auth token");
+    let mut c = RawClient::connect(&handle).await;
+    let nonce = c.challenge().await;
+    let ServerMessage::Admitted { session, setup, .. } = ({
+        let mut identify =
+            identify_message(&simulated_identity("eve"), &nonce, "eve", None, fedvla_federation::PROTOCOL_VERSION);
+        if let fedvla_federation::ClientMessage::Identify { auth_token, .. } = &mut identify {
+            *auth_token = Some("s3cret".into());
+        }
+        c.send(&identify).await;
+        c.recv().await.unwrap()
+    }) else {
+        panic!("admitted with the token")
+    };
+    let auth = format!("Bearer {session}");
+    let (status, body) = http(&handle, "GET", "/model/0", &[("authorization", &auth)], Vec::new()).await;
+    assert_eq!(status, 200, "{body}");
+    let own_shard = format!("/shard/{}/manifest", setup.shard_index);
+    let (status, body) = http(&handle, "GET", &own_shard, &[("authorization", &auth)], Vec::new()).await;
+    assert_eq!(status, 404, "{own_shard}: {body}");
+    drop(c);
     let url = format!("ws://{}", handle.addr());
     let clients: Vec<_> = (0..3)
         .map(|shard| {
             let url = url.clone();
             tokio::spawn(async move {
                 let name = format!("client-{shard}");
+                let identity = simulated_identity(&name);
                 let volunteer = Volunteer {
                     server: &url,
                     ca_cert: None,
                     name: &name,
-                    data: VolunteerData::Shard(Some(shard)),
+                    identity: &identity,
+                    // Round-robin: eve, admitted above, holds shard 0, which a request would be refused.
+                    data: VolunteerData::Shard(None),
                     auth_token: Some("s3cret".into()),
                     attack: None,
                 };

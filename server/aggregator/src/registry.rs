@@ -1,15 +1,22 @@
 //! Who trains on which shard: what a workload offers volunteers ([`VolunteerOffer`]: its shards with their
-//! training examples, the policy, the frozen weights, what an own dataset must match) and the registry of volunteer names, their shards and the
-//! client ids handed out ([`Volunteers`]), bounded, and persisted in the run directory (`volunteers.json`) so a
-//! restarted server keeps every volunteer on its shard and never hands out an id twice.
+//! training examples, the policy, the frozen weights, what an own dataset must match, and the setup a volunteer is
+//! admitted with) and the registry of volunteers ([`Volunteers`]): each public key's name and shard, and the client
+//! ids handed out, bounded, and persisted in the run directory (`volunteers.json`) so a restarted server keeps
+//! every key on its shard and never hands out an id twice. A name belongs to the first key that uses it, a shard
+//! asked for is granted only when no other key holds it, and a closed federation admits only the keys of its
+//! allow-list (`allowed-keys`).
 
-use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard};
 
 use bytes::Bytes;
+use fedvla_federation::identity::{PUBLIC_KEY_BYTES, from_hex, to_hex};
 use fedvla_federation::protocol::MAX_NAME_BYTES;
-use fedvla_federation::{DatasetSignature, ErrorCode, NormalizationStats, OwnDataset, RolloutTasks, WorkloadKind};
+use fedvla_federation::{
+    DatasetSignature, ErrorCode, NormalizationStats, OwnDataset, PROTOCOL_VERSION, RolloutTasks, VolunteerSetup,
+    WorkloadKind, routes,
+};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
@@ -80,6 +87,12 @@ pub struct ShardBinding {
 pub enum VolunteerError {
     #[error("volunteer name of {len} bytes: names are 1 to {MAX_NAME_BYTES} bytes without control characters")]
     InvalidName { len: usize },
+    #[error("the name {name:?} belongs to another key: choose another name (or use that name's key)")]
+    NameTaken { name: String },
+    #[error("shard {index} is held by another key: leave the shard to the server")]
+    ShardTaken { index: usize },
+    #[error("this federation admits only the keys of its allow-list, and not this one")]
+    NotAllowed,
     #[error("no shard {index}: this run has {count}")]
     UnknownShard { index: usize, count: usize },
     #[error("shard {index} has no file: clients generate it from its index")]
@@ -94,13 +107,16 @@ impl VolunteerError {
     pub fn code(&self) -> ErrorCode {
         match self {
             Self::InvalidName { .. } => ErrorCode::InvalidName,
+            Self::NameTaken { .. } => ErrorCode::NameTaken,
+            Self::ShardTaken { .. } => ErrorCode::ShardTaken,
+            Self::NotAllowed => ErrorCode::Unauthorized,
             Self::UnknownShard { .. } | Self::NoFile { .. } => ErrorCode::UnknownShard,
             Self::NoOwnData | Self::IncompatibleDataset(_) => ErrorCode::IncompatibleDataset,
         }
     }
 }
 
-/// Checks a volunteer name: it keys the shard registry and appears in logs, metrics and the console.
+/// Checks a volunteer name: it is one key's, and appears in logs, metrics and the console.
 pub fn check_name(name: &str) -> Result<(), VolunteerError> {
     if name.is_empty() || name.len() > MAX_NAME_BYTES || name.chars().any(char::is_control) {
         return Err(VolunteerError::InvalidName { len: name.len() });
@@ -108,37 +124,60 @@ pub fn check_name(name: &str) -> Result<(), VolunteerError> {
     Ok(())
 }
 
-/// Which shard each named volunteer was given and which client ids are spent: `volunteers.json` in the run
-/// directory, so a restarted server keeps both.
+/// Each key's name and shard, and which client ids are spent: `volunteers.json` in the run directory, so a
+/// restarted server keeps both. (A registry of protocol 5, keyed by names, resumes with its client ids and without
+/// its names: no key proved them.)
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Registry {
     /// The next shard handed out round-robin.
     pub next_shard: usize,
     /// Client ids below this were (or may have been) handed out.
     pub reserved_client_ids: u64,
-    /// Shard by volunteer name, with the order in which names were first bound (the oldest is pruned first).
-    pub assignments: BTreeMap<String, Assignment>,
-    /// Counter behind `Assignment::order`.
+    /// By public key (hex): the volunteer's name and shard, and the order in which keys were first bound (the
+    /// oldest is pruned first).
+    #[serde(default)]
+    pub volunteers: BTreeMap<String, Binding>,
+    /// Counter behind `Binding::order`.
     pub bindings: u64,
     /// The next client id (not persisted: a restart continues after the reservation).
     #[serde(skip)]
     next_client_id: u64,
+    /// The key of each name in `volunteers`.
+    #[serde(skip)]
+    key_by_name: HashMap<String, String>,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Assignment {
-    pub shard: usize,
+/// What a key is bound to.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Binding {
+    pub name: String,
+    /// `None` for a volunteer on its own dataset (or a workload without shards).
+    pub shard: Option<usize>,
     pub order: u64,
 }
 
-/// The offer as served: the frozen weights' content tag, and the registry of names, shards and client ids
-/// (round-robin, sticky by name, at most `max_names` names).
+/// What a proven key is admitted with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Admitted {
+    /// Never handed out before, in this run.
+    pub client_id: u64,
+    /// The shard bound to the key; `None` for a volunteer on its own dataset, or a workload without shards.
+    pub shard: Option<ShardBinding>,
+    /// Whether the registry changed (or needs the next block of client ids) and must be persisted before the
+    /// client is admitted.
+    pub persist: bool,
+}
+
+/// The offer as served: the frozen weights' content tag, the registry of keys, names, shards and client ids
+/// (round-robin, sticky by key, at most `max_names` keys), and the allow-list of a closed federation.
 pub struct Volunteers {
     offer: VolunteerOffer,
     /// Hex SHA-256 prefix of the frozen safetensors; part of their URL.
     frozen_tag: Option<String>,
     registry: Mutex<Registry>,
     max_names: usize,
+    /// The public keys (lowercase hex) a closed federation admits; `None`: any key.
+    allowed_keys: Option<HashSet<String>>,
     /// The most an own dataset's updates weigh.
     own_data_max_examples: u64,
     run_dir: RunDir,
@@ -170,6 +209,7 @@ impl Volunteers {
             Err(source) => return Err(RunDirError::Io { path, source }),
         };
         registry.next_client_id = registry.reserved_client_ids.max(1);
+        registry.key_by_name = registry.volunteers.iter().map(|(key, b)| (b.name.clone(), key.clone())).collect();
         let own_data_max_examples = match own_data_max_examples {
             0 => offer.shards.iter().map(|s| s.train_examples).max().unwrap_or(0),
             cap => cap,
@@ -179,73 +219,85 @@ impl Volunteers {
             frozen_tag,
             registry: Mutex::new(registry),
             max_names,
+            allowed_keys: None,
             own_data_max_examples,
             run_dir,
             writing: Mutex::default(),
         })
     }
 
-    /// The shard of volunteer `name`: `requested` when given (it becomes the name's shard), else the name's
-    /// shard, else the next one round-robin; `None` when the workload offers no shards. Also says whether the
-    /// registry changed (and so should be persisted).
-    pub fn assign(
+    /// Admits only the public keys of `keys` (see [`read_allowed_keys`]).
+    pub fn with_allowed_keys(mut self, keys: HashSet<String>) -> Self {
+        self.allowed_keys = Some(keys);
+        self
+    }
+
+    /// Admits the volunteer whose proven key is `key` (hex) as `name`: a name another key holds is refused, and a
+    /// key outside the allow-list. A volunteer on a shard (`own_dataset` false) trains on `requested` when it
+    /// names one no other key holds, else on its key's shard, else a new key gets the next one round-robin. Each
+    /// admission gets a client id never handed out before.
+    pub fn admit(
         &self,
-        name: Option<&str>,
-        requested: Option<usize>,
-    ) -> Result<(Option<ShardBinding>, bool), VolunteerError> {
-        if let Some(name) = name {
-            check_name(name)?;
+        key: &str,
+        name: &str,
+        requested: Option<u32>,
+        own_dataset: bool,
+    ) -> Result<Admitted, VolunteerError> {
+        check_name(name)?;
+        if self.allowed_keys.as_ref().is_some_and(|allowed| !allowed.contains(key)) {
+            return Err(VolunteerError::NotAllowed);
         }
         let count = self.offer.shards.len();
+        let requested = requested.map(|s| s as usize);
         if let Some(index) = requested.filter(|&i| i >= count) {
             return Err(VolunteerError::UnknownShard { index, count });
         }
-        if count == 0 {
-            return Ok((None, false));
-        }
         let mut registry = self.registry();
-        let (index, changed) = match name {
-            Some(name) => {
-                let current = registry.assignments.get(name).map(|a| a.shard);
-                let index = match (requested, current) {
-                    (Some(index), _) | (None, Some(index)) => index,
-                    (None, None) => registry.round_robin(count),
-                };
-                (index, registry.bind(name, index, self.max_names))
+        if registry.key_by_name.get(name).is_some_and(|holder| holder != key) {
+            return Err(VolunteerError::NameTaken { name: name.to_owned() });
+        }
+        let current = registry.volunteers.get(key).and_then(|b| b.shard);
+        let shard = match (requested, current) {
+            _ if own_dataset || count == 0 => current,
+            (Some(index), _) if registry.held_by_another(index, key) => {
+                return Err(VolunteerError::ShardTaken { index });
             }
-            None => (requested.unwrap_or_else(|| registry.round_robin(count)), false),
+            (Some(index), _) | (None, Some(index)) => Some(index),
+            (None, None) => Some(registry.round_robin(count)),
         };
-        Ok((Some(ShardBinding { index, train_examples: self.offer.shards[index].train_examples }), changed))
+        let changed = registry.bind(key, name, shard, self.max_names);
+        let client_id = registry.next_client_id;
+        registry.next_client_id += 1;
+        let persist = changed || registry.next_client_id + CLIENT_ID_BLOCK / 2 >= registry.reserved_client_ids;
+        let shard = shard
+            .filter(|_| !own_dataset)
+            .map(|index| ShardBinding { index, train_examples: self.offer.shards[index].train_examples });
+        Ok(Admitted { client_id, shard, persist })
     }
 
-    /// A joining client: its (never reused) id, what it trains on (its own dataset, checked against the run's,
-    /// or the shard [`Volunteers::assign`] picks), and whether the registry must be persisted before the client is
-    /// welcomed.
-    pub fn join(
-        &self,
-        name: &str,
-        requested: Option<u32>,
-        own: Option<&OwnDataset>,
-    ) -> Result<(u64, Option<DataSource>, bool), VolunteerError> {
-        let (data, changed) = match own {
-            Some(own) => {
-                check_name(name)?;
-                (Some(self.own_data(own)?), false)
-            }
-            None => {
-                let (shard, changed) = self.assign(Some(name), requested.map(|s| s as usize))?;
-                let data = shard.map(|s| DataSource::Shard { index: s.index, examples: s.train_examples });
-                (data, changed)
-            }
-        };
-        let mut registry = self.registry();
-        let id = registry.next_client_id;
-        registry.next_client_id += 1;
-        Ok((id, data, changed || registry.next_client_id + CLIENT_ID_BLOCK / 2 >= registry.reserved_client_ids))
+    /// What a volunteer admitted with `shard` is offered, at global model version `model_version`.
+    pub fn setup(&self, shard: Option<ShardBinding>, model_version: u64) -> VolunteerSetup {
+        let offer = &self.offer;
+        let index = shard.map_or(0, |b| b.index) as u32;
+        VolunteerSetup {
+            protocol_version: PROTOCOL_VERSION,
+            workload: offer.workload,
+            shard_index: index,
+            shard_count: offer.shards.len() as u32,
+            shard_url: routes::shard(index),
+            shard_manifest_url: routes::shard_manifest(index),
+            policy: offer.policy.clone(),
+            frozen_url: self.frozen_tag().map(routes::frozen),
+            frozen_bytes: offer.frozen.as_ref().map_or(0, |b| b.len() as u64),
+            rollout_tasks: offer.rollout_tasks.clone(),
+            model_version,
+            tokenizer_url: offer.tokenizer.as_ref().map(|_| routes::TOKENIZER.to_owned()),
+            dataset_signature: offer.signature.clone(),
+        }
     }
 
     /// An own dataset, if it fits the run: weighed by its claimed training examples, at most the cap.
-    fn own_data(&self, own: &OwnDataset) -> Result<DataSource, VolunteerError> {
+    pub fn own_data(&self, own: &OwnDataset) -> Result<DataSource, VolunteerError> {
         let run = self.offer.signature.as_ref().ok_or(VolunteerError::NoOwnData)?;
         own.signature.check_fits(run).map_err(VolunteerError::IncompatibleDataset)?;
         let weight = own.train_examples.min(self.own_data_max_examples);
@@ -295,21 +347,54 @@ impl Registry {
         index
     }
 
-    /// Records `name`'s shard, dropping the name bound first when the registry is full; false when the name
-    /// already had that shard.
-    fn bind(&mut self, name: &str, shard: usize, max_names: usize) -> bool {
-        if let Some(a) = self.assignments.get_mut(name) {
-            return std::mem::replace(&mut a.shard, shard) != shard;
+    /// Whether a key other than `key` is bound to shard `index`.
+    fn held_by_another(&self, index: usize, key: &str) -> bool {
+        self.volunteers.iter().any(|(other, b)| other != key && b.shard == Some(index))
+    }
+
+    /// Binds `key` to `name` and `shard`, dropping the key bound first when the registry is full; false when
+    /// nothing changed. The caller checked that no other key holds `name`.
+    fn bind(&mut self, key: &str, name: &str, shard: Option<usize>, max_names: usize) -> bool {
+        if let Some(b) = self.volunteers.get_mut(key) {
+            if (b.name.as_str(), b.shard) == (name, shard) {
+                return false;
+            }
+            let old = std::mem::replace(&mut b.name, name.to_owned());
+            b.shard = shard;
+            self.key_by_name.remove(&old);
+            self.key_by_name.insert(name.to_owned(), key.to_owned());
+            return true;
         }
-        if self.assignments.len() >= max_names.max(1) {
-            let oldest = self.assignments.iter().min_by_key(|(_, a)| a.order).map(|(n, _)| n.clone());
-            if let Some(oldest) = oldest {
-                tracing::info!(name = %oldest, max_names, "volunteer registry full: forgetting the oldest name");
-                self.assignments.remove(&oldest);
+        if self.volunteers.len() >= max_names.max(1) {
+            let oldest = self.volunteers.iter().min_by_key(|(_, b)| b.order).map(|(k, _)| k.clone());
+            if let Some(b) = oldest.and_then(|k| self.volunteers.remove(&k)) {
+                tracing::info!(name = %b.name, max_names, "volunteer registry full: forgetting the oldest key");
+                self.key_by_name.remove(&b.name);
             }
         }
         self.bindings += 1;
-        self.assignments.insert(name.to_owned(), Assignment { shard, order: self.bindings });
+        self.volunteers.insert(key.to_owned(), Binding { name: name.to_owned(), shard, order: self.bindings });
+        self.key_by_name.insert(name.to_owned(), key.to_owned());
         true
     }
+}
+
+/// The allow-list of a closed federation (`allowed-keys`): a file of hex Ed25519 public keys, one a line (blank
+/// lines and `#` comments skipped), as lowercase hex.
+pub fn read_allowed_keys(path: &Path) -> Result<HashSet<String>, RunDirError> {
+    let text = std::fs::read_to_string(path).map_err(|source| RunDirError::Io { path: path.to_owned(), source })?;
+    let mut keys = HashSet::new();
+    for (number, line) in text.lines().enumerate() {
+        let line = line.split('#').next().unwrap_or_default().trim();
+        if line.is_empty() {
+            continue;
+        }
+        let key: [u8; PUBLIC_KEY_BYTES] = from_hex("public key", line).map_err(|e| RunDirError::Metrics {
+            path: path.to_owned(),
+            line: number + 1,
+            message: e.to_string(),
+        })?;
+        keys.insert(to_hex(&key));
+    }
+    Ok(keys)
 }

@@ -1,6 +1,6 @@
-//! The sessions of connected clients: the bearer token each connection's welcome carries, the rollout videos each
-//! client may still upload for the round that asked it for them (and no other), and the SCAFFOLD correction each
-//! may download for its round.
+//! The sessions of connected clients: the bearer token each connection's admission carries (with the shard bound
+//! to the client's key, the only one it may download), the rollout videos each client may still upload for the
+//! round that asked it for them (and no other), and the SCAFFOLD correction each may download for its round.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -13,9 +13,17 @@ pub struct Sessions {
     inner: Arc<Mutex<SessionTable>>,
 }
 
+/// Who holds a session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SessionHolder {
+    pub client_id: u64,
+    /// The shard bound to the client's key, the one shard it may download.
+    pub shard: Option<usize>,
+}
+
 #[derive(Default)]
 struct SessionTable {
-    by_token: HashMap<String, u64>,
+    by_token: HashMap<String, SessionHolder>,
     /// Client id -> (round, videos it may still upload for that round).
     uploads: HashMap<u64, (u64, u32)>,
     /// Client id -> (round, its SCAFFOLD correction for that round, as safetensors).
@@ -23,16 +31,16 @@ struct SessionTable {
 }
 
 impl Sessions {
-    /// A fresh unguessable token for `client_id`.
-    pub fn open(&self, client_id: u64) -> String {
+    /// A fresh unguessable token for `client_id`, which may download `shard`.
+    pub fn open(&self, client_id: u64, shard: Option<usize>) -> String {
         let token = random_token();
-        self.table().by_token.insert(token.clone(), client_id);
+        self.table().by_token.insert(token.clone(), SessionHolder { client_id, shard });
         token
     }
 
     pub fn close(&self, client_id: u64) {
         let mut table = self.table();
-        table.by_token.retain(|_, id| *id != client_id);
+        table.by_token.retain(|_, holder| holder.client_id != client_id);
         table.uploads.remove(&client_id);
         table.corrections.remove(&client_id);
     }
@@ -59,7 +67,7 @@ impl Sessions {
         table.corrections.retain(|_, (r, _)| *r != round);
     }
 
-    pub fn client(&self, token: &str) -> Option<u64> {
+    pub fn holder(&self, token: &str) -> Option<SessionHolder> {
         self.table().by_token.get(token).copied()
     }
 
@@ -91,8 +99,13 @@ pub enum UploadRefused {
 
 /// A fresh token of 128 random bits from the OS, as 32 hex digits.
 pub fn random_token() -> String {
+    random_hex::<16>()
+}
+
+/// `N` fresh random bytes from the OS, in hex (tokens, identity challenges).
+pub fn random_hex<const N: usize>() -> String {
     use rand::{Rng, SeedableRng};
-    let bytes: [u8; 16] = rand::rngs::StdRng::from_os_rng().random();
+    let bytes: [u8; N] = rand::rngs::StdRng::from_os_rng().random();
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 

@@ -1,7 +1,9 @@
-//! One client's WebSocket: join handshake, control messages, update reassembly and validation. Generic over
-//! Sink/Stream so it runs over channels in unit tests. Bad input is answered with an `Error` message to this
-//! client and counted by the coordinator; only fatal errors close the connection. The bounds of [`crate::bounds`]
-//! apply here: joins per address, messages per second, and memory for the update on its way in.
+//! One client's WebSocket: the identity handshake (a fresh challenge, the client's signed answer, its admission
+//! with a session bound to its key's shard and its setup), the join once it has downloaded what it needs, control
+//! messages, update reassembly and validation. Generic over Sink/Stream so it runs over channels in unit tests.
+//! Bad input is answered with an `Error` message to this client and counted by the coordinator; only fatal errors
+//! close the connection (and any error before the join). The bounds of [`crate::bounds`] apply here: admissions
+//! per address, messages per second, and memory for the update on its way in.
 
 use std::fmt::Display;
 use std::net::IpAddr;
@@ -9,7 +11,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::ws::Message;
+use fedvla_aggregator::records::DataSource;
+use fedvla_aggregator::registry::ShardBinding;
 use fedvla_federation::codec::decode_payload;
+use fedvla_federation::identity::{NONCE_BYTES, to_hex, verify_proof};
 use fedvla_federation::{
     ClientMessage, CodecError, ErrorCode, NormalizationStats, PROTOCOL_VERSION, Reassembler, ServerMessage,
     UpdateValues,
@@ -18,14 +23,18 @@ use futures_util::{Sink, SinkExt, Stream, StreamExt};
 use tokio::sync::mpsc;
 
 use fedvla_aggregator::coordinator::{Event, UpdateReceived};
-use fedvla_aggregator::sessions::same_secret;
+use fedvla_aggregator::sessions::{random_hex, same_secret};
 
 use crate::bounds::{MessageRate, Reservation};
 use crate::state::SocketState;
 use crate::volunteer;
 
-/// A connection that has not joined by then is closed.
-const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
+/// A connection that has not identified by then is closed.
+const IDENTIFY_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// An admitted connection that has not joined by then is closed: long enough for a first visit's downloads (the
+/// frozen weights) over a slow line; the connection is pinged meanwhile.
+const JOIN_TIMEOUT: Duration = Duration::from_secs(3600);
 
 /// Serves one connection from `peer` until the client leaves, a fatal error, or shutdown.
 pub async fn handle_socket<S, R, E>(sink: S, mut stream: R, state: SocketState, peer: IpAddr)
@@ -37,15 +46,21 @@ where
 {
     let rate = MessageRate::new(state.messages_per_second);
     let mut conn = Connection { sink, state, client_id: None, upload: Upload::Idle, rate };
-    let Some(mut outbox) = conn.join(&mut stream, peer).await else {
+    let Some(admission) = conn.admit(&mut stream, peer).await else {
         conn.close().await;
         return;
     };
-    let client_id = conn.client_id.expect("joined");
-    // A ping keeps an idle connection (a volunteer waiting for its next round) open through proxies that close
-    // silent ones, and through the listener's idle timeout; browsers and tungstenite answer pings by themselves.
+    let client_id = admission.client_id;
+    // A ping keeps an idle connection (a volunteer downloading, or waiting for its next round) open through proxies
+    // that close silent ones, and through the listener's idle timeout; browsers and tungstenite answer pings by
+    // themselves.
     let every = conn.state.keepalive;
     let mut keepalive = tokio::time::interval_at(tokio::time::Instant::now() + every, every);
+    let Some(mut outbox) = conn.join(&mut stream, admission, &mut keepalive).await else {
+        conn.state.sessions.close(client_id);
+        conn.close().await;
+        return;
+    };
     loop {
         // Biased: messages the coordinator queued (e.g. `Finished`) go out before a shutdown closes the socket.
         let flow = tokio::select! {
@@ -106,6 +121,16 @@ enum Upload {
     Discarding,
 }
 
+/// A proven client, admitted but not yet joined.
+struct Admission {
+    client_id: u64,
+    name: String,
+    public_key: String,
+    /// The shard bound to its key; `None` for a volunteer on its own dataset or a workload without shards.
+    shard: Option<ShardBinding>,
+    own_dataset: bool,
+}
+
 #[derive(Clone, Copy)]
 struct AnnouncedUpdate {
     round: u64,
@@ -127,34 +152,47 @@ where
     S: Sink<Message> + Unpin,
     S::Error: Display,
 {
-    /// Waits for `Join`, checks `peer`'s join rate, version and token, registers with the coordinator and welcomes
-    /// the client.
-    async fn join<R, E>(&mut self, stream: &mut R, peer: IpAddr) -> Option<mpsc::UnboundedReceiver<ServerMessage>>
+    /// Challenges the client, waits for its `Identify`, checks `peer`'s admission rate, the version, the token and
+    /// the signature, has the registry admit the key, and answers with the session and the setup.
+    async fn admit<R, E>(&mut self, stream: &mut R, peer: IpAddr) -> Option<Admission>
     where
         R: Stream<Item = Result<Message, E>> + Unpin,
     {
+        let nonce = random_hex::<NONCE_BYTES>();
+        if !matches!(self.send(&ServerMessage::Challenge { nonce: nonce.clone() }).await, Flow::Continue) {
+            return None;
+        }
         let text = tokio::select! {
             () = self.state.cancel.cancelled() => return None,
-            () = tokio::time::sleep(JOIN_TIMEOUT) => {
-                self.refuse(ErrorCode::UnexpectedMessage, format!("no join within {JOIN_TIMEOUT:?}")).await;
+            () = tokio::time::sleep(IDENTIFY_TIMEOUT) => {
+                self.refuse(ErrorCode::UnexpectedMessage, format!("no identify within {IDENTIFY_TIMEOUT:?}")).await;
                 return None;
             }
             frame = stream.next() => match frame {
                 Some(Ok(Message::Text(text))) => text,
                 Some(Ok(Message::Close(_)) | Err(_)) | None => return None,
                 Some(Ok(_)) => {
-                    self.refuse(ErrorCode::UnexpectedMessage, "the first message must be a join".into()).await;
+                    self.refuse(ErrorCode::UnexpectedMessage, "the first message must be an identify".into()).await;
                     return None;
                 }
             },
         };
-        // Before anything else of the message is looked at, so that guessing tokens or names costs joins too.
+        // Before anything else of the message is looked at, so that guessing tokens, names or keys costs
+        // admissions too.
         if !self.state.joins.allow(peer) {
             self.refuse(ErrorCode::JoinRateLimited, format!("{peer} has joined too often in the last minute")).await;
             return None;
         }
-        let (name, capabilities, shard, report) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
-            Ok(ClientMessage::Join { protocol_version, auth_token, name, capabilities, shard, data }) => {
+        let (name, public_key, shard, own_dataset) = match serde_json::from_str::<ClientMessage>(text.as_str()) {
+            Ok(ClientMessage::Identify {
+                protocol_version,
+                auth_token,
+                name,
+                public_key,
+                signature,
+                shard,
+                own_dataset,
+            }) => {
                 if protocol_version != PROTOCOL_VERSION {
                     let message =
                         format!("client speaks protocol version {protocol_version}, server speaks {PROTOCOL_VERSION}");
@@ -167,53 +205,156 @@ where
                     self.refuse(ErrorCode::Unauthorized, "missing or wrong auth token".into()).await;
                     return None;
                 }
-                // Moments that could never combine are refused now, not when the run agrees its statistics.
-                if let Some(Err(e)) = data.as_ref().map(|d| NormalizationStats::combine(&[d])) {
-                    self.refuse(ErrorCode::MalformedMessage, format!("the join's data moments: {e}")).await;
-                    return None;
+                match verify_proof(&public_key, &signature, &nonce, &name) {
+                    // The key as the registry spells it (lowercase hex), whatever case the client wrote.
+                    Ok(key) => (name, to_hex(&key), shard, own_dataset),
+                    Err(e) => {
+                        self.refuse(ErrorCode::Unauthorized, format!("identity not proven: {e}")).await;
+                        return None;
+                    }
                 }
-                (name, capabilities, shard, data)
+            }
+            // What a client of protocol 5 or before sends first.
+            Ok(ClientMessage::Join { .. }) => {
+                let message = format!(
+                    "this server speaks protocol {PROTOCOL_VERSION}, whose connections begin with an identify: \
+                     update the client"
+                );
+                self.refuse(ErrorCode::ProtocolVersion, message).await;
+                return None;
             }
             Ok(other) => {
-                self.refuse(ErrorCode::UnexpectedMessage, format!("the first message must be a join, got {other:?}"))
-                    .await;
+                let message = format!("the first message must be an identify, got {other:?}");
+                self.refuse(ErrorCode::UnexpectedMessage, message).await;
                 return None;
             }
             Err(e) => {
-                self.refuse(ErrorCode::MalformedMessage, format!("bad join message: {e}")).await;
+                self.refuse(ErrorCode::MalformedMessage, format!("bad identify message: {e}")).await;
                 return None;
             }
         };
-        let own = report.as_ref().and_then(|r| r.own.as_ref());
-        let (client_id, data, persist) = match self.state.volunteers.join(&name, shard, own) {
-            Ok(joined) => joined,
+        let admitted = match self.state.volunteers.admit(&public_key, &name, shard, own_dataset) {
+            Ok(admitted) => admitted,
             Err(e) => {
                 self.refuse(e.code(), e.to_string()).await;
                 return None;
             }
         };
-        if persist && let Err(e) = volunteer::persist(&self.state.volunteers).await {
-            tracing::error!(error = %e, "the volunteer registry could not be saved; refusing the join");
+        if admitted.persist
+            && let Err(e) = volunteer::persist(&self.state.volunteers).await
+        {
+            tracing::error!(error = %e, "the volunteer registry could not be saved; refusing the admission");
             self.refuse(ErrorCode::ShuttingDown, "the server cannot save its volunteer registry".into()).await;
             return None;
         }
+        let client_id = admitted.client_id;
         self.client_id = Some(client_id);
+        let session = self.state.sessions.open(client_id, admitted.shard.map(|s| s.index));
+        let setup = Box::new(self.state.volunteers.setup(admitted.shard, self.state.model.borrow().version));
+        tracing::info!(client_id, %name, %public_key, shard = ?admitted.shard, "client admitted");
+        match self.send(&ServerMessage::Admitted { client_id, session, setup }).await {
+            Flow::Continue => Some(Admission { client_id, name, public_key, shard: admitted.shard, own_dataset }),
+            Flow::Close | Flow::Gone => {
+                self.state.sessions.close(client_id);
+                None
+            }
+        }
+    }
+
+    /// Waits (pinging) for the admitted client's `Join`, checks its data against its admission and the run,
+    /// registers with the coordinator and welcomes the client.
+    async fn join<R, E>(
+        &mut self,
+        stream: &mut R,
+        admission: Admission,
+        keepalive: &mut tokio::time::Interval,
+    ) -> Option<mpsc::UnboundedReceiver<ServerMessage>>
+    where
+        R: Stream<Item = Result<Message, E>> + Unpin,
+    {
+        let deadline = tokio::time::sleep(JOIN_TIMEOUT);
+        tokio::pin!(deadline);
+        let (capabilities, report) = loop {
+            let text = tokio::select! {
+                () = self.state.cancel.cancelled() => return None,
+                () = &mut deadline => {
+                    self.refuse(ErrorCode::UnexpectedMessage, format!("no join within {JOIN_TIMEOUT:?}")).await;
+                    return None;
+                }
+                _ = keepalive.tick() => match self.ping().await {
+                    Flow::Continue => continue,
+                    Flow::Close | Flow::Gone => return None,
+                },
+                frame = stream.next() => match frame {
+                    Some(Ok(Message::Text(text))) => text,
+                    Some(Ok(Message::Ping(_) | Message::Pong(_))) => continue,
+                    Some(Ok(Message::Close(_)) | Err(_)) | None => return None,
+                    Some(Ok(Message::Binary(_))) => {
+                        self.refuse(ErrorCode::UnexpectedMessage, "a binary frame before the join".into()).await;
+                        return None;
+                    }
+                },
+            };
+            if !self.rate.allow() {
+                self.refuse_rate().await;
+                return None;
+            }
+            match serde_json::from_str::<ClientMessage>(text.as_str()) {
+                Ok(ClientMessage::Heartbeat) => {}
+                Ok(ClientMessage::Join { capabilities, data }) => break (capabilities, data),
+                Ok(other) => {
+                    let message = format!("an admitted client joins before anything else, got {other:?}");
+                    self.refuse(ErrorCode::UnexpectedMessage, message).await;
+                    return None;
+                }
+                Err(e) => {
+                    self.refuse(ErrorCode::MalformedMessage, format!("bad join message: {e}")).await;
+                    return None;
+                }
+            }
+        };
+        // Moments that could never combine are refused now, not when the run agrees its statistics.
+        if let Some(Err(e)) = report.as_ref().map(|d| NormalizationStats::combine(&[d])) {
+            self.refuse(ErrorCode::MalformedMessage, format!("the join's data moments: {e}")).await;
+            return None;
+        }
+        let Admission { client_id, name, public_key, shard, own_dataset } = admission;
+        let data = match (own_dataset, report.as_ref().and_then(|r| r.own.as_ref())) {
+            (false, None) => shard.map(|s| DataSource::Shard { index: s.index, examples: s.train_examples }),
+            (true, Some(own)) => match self.state.volunteers.own_data(own) {
+                Ok(data) => Some(data),
+                Err(e) => {
+                    self.refuse(e.code(), e.to_string()).await;
+                    return None;
+                }
+            },
+            (admitted_for_own, _) => {
+                let message = match admitted_for_own {
+                    true => "admitted for an own dataset, the join reports none",
+                    false => "admitted for a server shard, the join reports an own dataset",
+                };
+                self.refuse(ErrorCode::IncompatibleDataset, message.into()).await;
+                return None;
+            }
+        };
         let (outbox, inbox) = mpsc::unbounded_channel();
         tracing::info!(client_id, %name, ?data, backend = %capabilities.backend, "client joined");
-        let joined = Event::Joined { client_id, name, capabilities, data, report, outbox };
+        let report = report.map(Box::new);
+        let joined = Event::Joined { client_id, name, public_key, capabilities, data, report, outbox };
         if self.state.events.send(joined).await.is_err() {
             return None;
         }
-        let session = self.state.sessions.open(client_id);
         let welcome = ServerMessage::Welcome {
             client_id,
             protocol_version: PROTOCOL_VERSION,
             max_frame_bytes: self.state.limits.max_frame_bytes as u32,
-            session,
         };
         match self.send(&welcome).await {
             Flow::Continue => Some(inbox),
-            Flow::Close | Flow::Gone => None,
+            Flow::Close | Flow::Gone => {
+                self.state.events.send(Event::Left { client_id }).await.ok();
+                None
+            }
         }
     }
 
@@ -234,7 +375,7 @@ where
             }
         };
         let event = match msg {
-            ClientMessage::Join { .. } => {
+            ClientMessage::Identify { .. } | ClientMessage::Join { .. } => {
                 return self.refuse(ErrorCode::UnexpectedMessage, "already joined".into()).await;
             }
             ClientMessage::Heartbeat => {
@@ -391,11 +532,12 @@ mod tests {
     use std::convert::Infallible;
 
     use fedvla_aggregator::config::RunConfig;
+    use fedvla_aggregator::coordinator::PublishedModel;
     use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer, Volunteers};
     use fedvla_aggregator::run_dir::RunDir;
     use fedvla_aggregator::sessions::Sessions;
     use fedvla_federation::codec::{DEFAULT_MAX_FRAME_BYTES, encode_payload, encode_update};
-    use fedvla_federation::{Capabilities, NamedTensors, UpdateEncoding, UpdateLimits};
+    use fedvla_federation::{Capabilities, Identity, NamedTensors, UpdateEncoding, UpdateLimits};
     use futures_util::{sink, stream};
     use tokio_util::sync::CancellationToken;
 
@@ -412,6 +554,8 @@ mod tests {
     }
 
     struct Harness {
+        /// The global model the harness's server offers, kept so the model channel stays open.
+        _model: tokio::sync::watch::Sender<Arc<PublishedModel>>,
         to_server: mpsc::UnboundedSender<Message>,
         from_server: mpsc::UnboundedReceiver<Message>,
         events: mpsc::Receiver<Event>,
@@ -432,6 +576,7 @@ mod tests {
             let run_dir = RunDir::create(run_base.path(), &RunConfig::default()).unwrap();
             let shards = vec![ShardOffer { file: None, train_examples: 5 }];
             let offer = VolunteerOffer::shards_only(fedvla_federation::WorkloadKind::Linreg, shards);
+            let (model, model_rx) = tokio::sync::watch::channel(Arc::new(PublishedModel::first(0, Default::default())));
             let state = SocketState {
                 events: events_tx,
                 cancel: cancel.clone(),
@@ -441,6 +586,7 @@ mod tests {
                 spec: Arc::new(spec),
                 auth_token: Some(Arc::from("secret")),
                 volunteers: Arc::new(Volunteers::new(offer, run_dir, 16, 0).unwrap()),
+                model: model_rx,
                 sessions: Sessions::default(),
                 joins: JoinLimiter::new(60),
                 messages_per_second: 50,
@@ -454,7 +600,7 @@ mod tests {
                 rx.recv().await.map(|m| (Ok::<_, Infallible>(m), rx))
             }));
             let task = tokio::spawn(handle_socket(sink, stream, state, IpAddr::from([127, 0, 0, 1])));
-            Self { to_server, from_server, events, cancel, task, _run_base: run_base }
+            Self { _model: model, to_server, from_server, events, cancel, task, _run_base: run_base }
         }
 
         fn send(&self, msg: &ClientMessage) {
@@ -472,13 +618,25 @@ mod tests {
             }
         }
 
-        fn join(&self, token: Option<&str>) {
-            self.send(&ClientMessage::Join {
+        /// Answers the challenge with `token` and a proven key; joins once admitted.
+        async fn join(&mut self, token: Option<&str>) {
+            let ServerMessage::Challenge { nonce } = self.recv_control().await else { panic!("a challenge first") };
+            let identity = Identity::from_seed([3; 32]);
+            self.send(&ClientMessage::Identify {
                 protocol_version: PROTOCOL_VERSION,
                 auth_token: token.map(str::to_owned),
                 name: "c".into(),
-                capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
+                public_key: identity.public_key_hex(),
+                signature: identity.prove(&nonce, "c"),
                 shard: None,
+                own_dataset: false,
+            });
+            if token != Some("secret") {
+                return;
+            }
+            assert!(matches!(self.recv_control().await, ServerMessage::Admitted { client_id: 1, .. }));
+            self.send(&ClientMessage::Join {
+                capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
                 data: None,
             });
         }
@@ -495,7 +653,7 @@ mod tests {
     #[tokio::test]
     async fn join_update_refusal_outbox_and_shutdown() {
         let mut h = Harness::new();
-        h.join(Some("secret"));
+        h.join(Some("secret")).await;
         assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 1, .. }));
         let Some(Event::Joined { client_id: 1, outbox, .. }) = h.events.recv().await else { panic!("joined") };
 
@@ -532,7 +690,7 @@ mod tests {
     #[tokio::test(start_paused = true)]
     async fn an_idle_connection_is_pinged_to_keep_it_open() {
         let mut h = Harness::new();
-        h.join(Some("secret"));
+        h.join(Some("secret")).await;
         assert!(matches!(h.recv_control().await, ServerMessage::Welcome { client_id: 1, .. }));
         // The coordinator's end of the outbox stays open: a closed one ends the connection.
         let Some(Event::Joined { client_id: 1, outbox: _outbox, .. }) = h.events.recv().await else { panic!("joined") };
@@ -544,7 +702,7 @@ mod tests {
     #[tokio::test]
     async fn wrong_token_is_refused_and_closed() {
         let mut h = Harness::new();
-        h.join(Some("guess"));
+        h.join(Some("guess")).await;
         assert!(matches!(h.recv_control().await, ServerMessage::Error { code: ErrorCode::Unauthorized, .. }));
         assert!(matches!(h.recv().await, Message::Close(_)));
         assert!(matches!(

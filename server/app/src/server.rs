@@ -10,7 +10,7 @@ use axum::body::Bytes;
 use fedvla_aggregator::control::Controls;
 use fedvla_aggregator::coordinator::{Coordinator, CoordinatorError, PublishedModel, RunStatus};
 use fedvla_aggregator::parts::ServerParts;
-use fedvla_aggregator::registry::Volunteers;
+use fedvla_aggregator::registry::{Volunteers, read_allowed_keys};
 use fedvla_aggregator::run_dir::{ModelExporter, RunDirError, TrainableSafetensors};
 use fedvla_aggregator::sessions::{Sessions, random_token};
 use fedvla_federation::{TensorError, UpdateLimits};
@@ -102,12 +102,12 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         None if config.federated_stats => None,
         None => dataset_stats.clone(),
     };
-    let volunteers = Arc::new(Volunteers::new(
-        volunteer,
-        run_dir.clone(),
-        config.max_volunteer_names,
-        config.own_data_max_examples,
-    )?);
+    let volunteers =
+        Volunteers::new(volunteer, run_dir.clone(), config.max_volunteer_names, config.own_data_max_examples)?;
+    let volunteers = Arc::new(match config.allowed_keys_file() {
+        Some(path) => volunteers.with_allowed_keys(read_allowed_keys(path)?),
+        None => volunteers,
+    });
     let state = AppState {
         socket: SocketState {
             events: events_tx,
@@ -118,13 +118,13 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             keepalive: http_limits.keepalive(),
             auth_token: auth_token.clone(),
             volunteers: Arc::clone(&volunteers),
+            model: model_rx.clone(),
             sessions: sessions.clone(),
             joins: JoinLimiter::new(config.joins_per_address_per_minute),
             messages_per_second: config.max_messages_per_second,
             uploads: uploads.clone(),
         },
         volunteers: VolunteerState {
-            auth_token: auth_token.clone(),
             volunteers,
             sessions: sessions.clone(),
             model: model_rx,

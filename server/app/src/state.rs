@@ -37,11 +37,13 @@ pub struct SocketState {
     pub limits: UpdateLimits,
     /// How often an idle WebSocket is pinged (well within the listener's idle timeout).
     pub keepalive: Duration,
-    /// Token clients must present on join; `None` means no authentication.
+    /// Token clients must present when they identify; `None` means a public run.
     pub auth_token: Option<Arc<str>>,
     /// Who trains on which shard.
     pub volunteers: Arc<Volunteers>,
-    /// Upload sessions, opened by each join.
+    /// The global model, whose version an admission's setup names.
+    pub model: watch::Receiver<Arc<PublishedModel>>,
+    /// Download and upload sessions, opened by each admission.
     pub sessions: Sessions,
     /// Joins per address per minute.
     pub joins: JoinLimiter,
@@ -51,12 +53,10 @@ pub struct SocketState {
     pub uploads: UploadBudget,
 }
 
-/// The volunteers' HTTP routes': setup, shards, frozen weights, the global model, rollout videos.
+/// The volunteers' HTTP routes': shards, frozen weights, the tokenizer, the global model, SCAFFOLD corrections,
+/// rollout videos; each answers only a request presenting an admitted connection's session.
 #[derive(Clone)]
 pub struct VolunteerState {
-    /// The run's auth token: when set, every download (setup, shard, frozen weights, model) needs it as
-    /// `Authorization: Bearer <token>`, so only the federation's volunteers see its data.
-    pub auth_token: Option<Arc<str>>,
     pub volunteers: Arc<Volunteers>,
     pub sessions: Sessions,
     pub model: watch::Receiver<Arc<PublishedModel>>,

@@ -1,28 +1,26 @@
-//! What volunteers download and upload over HTTP, beside the WebSocket: the setup (`GET /api/volunteer`: which
-//! shard to train on, the policy configuration, where the frozen weights are), the run's tokenizer (for a
-//! volunteer that tokenizes its own dataset's tasks), the shard and its manifest, the
-//! frozen weights (named by content hash so browsers cache them forever), the global model, and rollout videos
-//! (`POST /rollout/{round}/{file}`, authorised by the connection's session token, for the round that asked, within
-//! `max-rollout-videos`, `max-video-bytes` and the upload budget; each refusal counted on the console), and a
-//! SCAFFOLD client's correction for its round (`GET /scaffold/{round}`, by the same token).
-//! A run with an auth token serves its downloads only to requests that present it ([`RunToken`]).
+//! What volunteers download and upload over HTTP, beside the WebSocket that admitted them (and gave them their
+//! setup): the run's tokenizer (for a volunteer that tokenizes its own dataset's tasks), the shard and its
+//! manifest, the frozen weights (named by content hash so browsers cache them forever), the global model, a
+//! SCAFFOLD client's correction for its round (`GET /scaffold/{round}`), and rollout videos
+//! (`POST /rollout/{round}/{file}`, for the round that asked, within `max-rollout-videos`, `max-video-bytes` and
+//! the upload budget; each refusal counted on the console). Every route answers only a request presenting an
+//! admitted connection's session ([`Session`]: 401 without one), and a shard only to a session of a key bound to
+//! it (403 otherwise), public run or not.
 
 use std::sync::Arc;
 
-use axum::Json;
 use axum::Router;
 use axum::body::Body;
-use axum::extract::{FromRef, FromRequestParts, Path, Query, State};
+use axum::extract::{FromRef, FromRequestParts, Path, State};
 use axum::http::header::{CACHE_CONTROL, CONTENT_LENGTH, CONTENT_TYPE};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use fedvla_aggregator::registry::Volunteers;
-use fedvla_aggregator::sessions::{UploadRefused, same_secret};
-use fedvla_federation::{ErrorCode, PROTOCOL_VERSION, VolunteerSetup, routes};
+use fedvla_aggregator::sessions::{SessionHolder, UploadRefused};
+use fedvla_federation::{ErrorCode, routes};
 use futures_util::StreamExt;
-use serde::Deserialize;
 
 use crate::auth::bearer;
 use crate::console::ConsoleEvent;
@@ -31,7 +29,6 @@ use crate::state::{AppState, VolunteerState};
 
 pub fn routes() -> Router<AppState> {
     Router::new()
-        .route(routes::VOLUNTEER, get(get_setup))
         .route(routes::FROZEN, get(get_frozen))
         .route(routes::TOKENIZER, get(get_tokenizer))
         .route(routes::SHARD, get(get_shard))
@@ -41,74 +38,43 @@ pub fn routes() -> Router<AppState> {
         .route(routes::ROLLOUT_VIDEO, post(post_video))
 }
 
-/// Proof that a download request may see the run's data: it presents the run's auth token (compared in constant
-/// time), or the run has none (a public run).
-struct RunToken;
+/// The session a request presents (`Authorization: Bearer <session>`): that of a connection the server admitted
+/// and that is still open.
+struct Session(SessionHolder);
 
-impl<S: Send + Sync> FromRequestParts<S> for RunToken
+impl<S: Send + Sync> FromRequestParts<S> for Session
 where
     VolunteerState: FromRef<S>,
 {
     type Rejection = ServerError;
 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ServerError> {
-        let Some(expected) = VolunteerState::from_ref(state).auth_token else { return Ok(Self) };
-        match bearer(&parts.headers) {
-            Some(token) if same_secret(token, &expected) => Ok(Self),
-            Some(_) => Err(ServerError::Unauthorized("wrong auth token".into())),
-            None => Err(ServerError::Unauthorized(
-                "this run needs its auth token: `Authorization: Bearer <auth-token>`".into(),
-            )),
+        let token = bearer(&parts.headers).ok_or_else(|| {
+            ServerError::Unauthorized(
+                "no session: identify on the WebSocket, then `Authorization: Bearer <session>`".into(),
+            )
+        })?;
+        let holder = VolunteerState::from_ref(state).sessions.holder(token);
+        holder
+            .map(Self)
+            .ok_or_else(|| ServerError::Unauthorized("unknown session (is the client still connected?)".into()))
+    }
+}
+
+impl Session {
+    /// Refuses a shard other than the one bound to the session's key.
+    fn may_download_shard(&self, index: usize) -> Result<(), ServerError> {
+        match self.0.shard {
+            Some(bound) if bound == index => Ok(()),
+            _ => Err(ServerError::Forbidden(format!(
+                "shard {index} is not this client's: a shard is served only to the keys bound to it"
+            ))),
         }
     }
 }
 
-/// Who asks for a setup.
-#[derive(Deserialize)]
-struct SetupQuery {
-    name: Option<String>,
-    /// A shard the volunteer wants (`fedvla join --shard`); it becomes the name's shard.
-    shard: Option<usize>,
-    /// The volunteer trains on its own dataset (`fedvla join --dataset`): it is assigned no shard.
-    #[serde(default)]
-    own_dataset: bool,
-}
-
-/// The setup of a volunteer (`?name=` keeps a returning one on its shard).
-async fn get_setup(
-    _: RunToken,
-    State(state): State<VolunteerState>,
-    Query(query): Query<SetupQuery>,
-) -> Result<Json<VolunteerSetup>, ServerError> {
-    let v = &state.volunteers;
-    let (binding, changed) = match query.own_dataset {
-        true => (None, false),
-        false => v.assign(query.name.as_deref(), query.shard).map_err(|e| ServerError::BadRequest(e.to_string()))?,
-    };
-    if changed {
-        persist(v).await?;
-    }
-    let index = binding.map_or(0, |b| b.index) as u32;
-    let offer = v.offer();
-    Ok(Json(VolunteerSetup {
-        protocol_version: PROTOCOL_VERSION,
-        workload: offer.workload,
-        shard_index: index,
-        shard_count: offer.shards.len() as u32,
-        shard_url: routes::shard(index),
-        shard_manifest_url: routes::shard_manifest(index),
-        policy: offer.policy.clone(),
-        frozen_url: v.frozen_tag().map(routes::frozen),
-        frozen_bytes: offer.frozen.as_ref().map_or(0, |b| b.len() as u64),
-        rollout_tasks: offer.rollout_tasks.clone(),
-        model_version: state.model.borrow().version,
-        tokenizer_url: offer.tokenizer.as_ref().map(|_| routes::TOKENIZER.to_owned()),
-        dataset_signature: offer.signature.clone(),
-    }))
-}
-
 /// The run's `tokenizer.json`.
-async fn get_tokenizer(_: RunToken, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
+async fn get_tokenizer(_: Session, State(state): State<VolunteerState>) -> Result<Response, ServerError> {
     let bytes = state.volunteers.offer().tokenizer.clone().ok_or_else(|| {
         ServerError::NotFound("this run has no tokenizer to serve (its workload tokenizes nothing)".into())
     })?;
@@ -125,7 +91,7 @@ pub async fn persist(volunteers: &Arc<Volunteers>) -> Result<(), ServerError> {
 }
 
 async fn get_frozen(
-    _: RunToken,
+    _: Session,
     Path(tag): Path<String>,
     State(state): State<VolunteerState>,
 ) -> Result<Response, ServerError> {
@@ -142,20 +108,22 @@ async fn get_frozen(
 
 /// The shard file as stored; clients check it against the manifest's size and SHA-256.
 async fn get_shard(
-    _: RunToken,
+    session: Session,
     Path(index): Path<usize>,
     State(state): State<VolunteerState>,
 ) -> Result<Response, ServerError> {
+    session.may_download_shard(index)?;
     let path = state.volunteers.shard_file(index)?;
     let bytes = tokio::fs::read(path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
     Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes).into_response())
 }
 
 async fn get_shard_manifest(
-    _: RunToken,
+    session: Session,
     Path(index): Path<usize>,
     State(state): State<VolunteerState>,
 ) -> Result<Response, ServerError> {
+    session.may_download_shard(index)?;
     let path = fedvla_data::shard::sidecar_path(state.volunteers.shard_file(index)?);
     let json = tokio::fs::read(&path).await.map_err(|e| ServerError::ShardIo(format!("{}: {e}", path.display())))?;
     Ok(([(CONTENT_TYPE, "application/json")], json).into_response())
@@ -163,7 +131,7 @@ async fn get_shard_manifest(
 
 /// The global trainable tensors of the current version (or of the one before it).
 async fn get_model(
-    _: RunToken,
+    _: Session,
     Path(version): Path<u64>,
     State(state): State<VolunteerState>,
 ) -> Result<Response, ServerError> {
@@ -173,23 +141,12 @@ async fn get_model(
     Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes.clone()).into_response())
 }
 
-/// The client whose connection's session token the request presents.
-fn session_client(state: &VolunteerState, headers: &HeaderMap) -> Result<u64, ServerError> {
-    let token = bearer(headers)
-        .ok_or_else(|| ServerError::Unauthorized("no `Authorization: Bearer <session>` header".into()))?;
-    state
-        .sessions
-        .client(token)
-        .ok_or_else(|| ServerError::Unauthorized("unknown session (is the client still connected?)".into()))
-}
-
 /// The SCAFFOLD correction `c - c_i` the round's task offered the asking client (safetensors).
 async fn get_correction(
+    Session(SessionHolder { client_id, .. }): Session,
     Path(round): Path<u64>,
     State(state): State<VolunteerState>,
-    headers: HeaderMap,
 ) -> Result<Response, ServerError> {
-    let client_id = session_client(&state, &headers)?;
     let bytes = state.sessions.correction(client_id, round).ok_or_else(|| {
         ServerError::NotFound(format!("round {round} offered client {client_id} no SCAFFOLD correction"))
     })?;
@@ -199,6 +156,7 @@ async fn get_correction(
 /// Stores a rollout video as `evaluate/round_N/client_K/<file>`. Its length (`Content-Length`, else
 /// `max-video-bytes`) is reserved in the upload budget before its body is read.
 async fn post_video(
+    Session(SessionHolder { client_id, .. }): Session,
     Path((round, file)): Path<(u64, String)>,
     State(state): State<VolunteerState>,
     headers: HeaderMap,
@@ -208,7 +166,6 @@ async fn post_video(
         state.console.count_refusal(code);
         error
     };
-    let client_id = session_client(&state, &headers)?;
     let safe_name = !file.is_empty()
         && file.len() <= 64
         && file.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))

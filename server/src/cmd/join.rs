@@ -1,6 +1,6 @@
-//! `fedvla join URL`: a native volunteer. It downloads what the server offers (`GET /api/volunteer`: its shard,
-//! the policy configuration and the frozen weights), then runs the shared round loop
-//! (`fedvla_server::native_client::volunteer`). With `--dataset PATH` it trains on a LeRobot dataset of its own
+//! `fedvla join URL`: a native volunteer. It proves its key pair (kept under the user's config directory, one per
+//! name), is admitted with its setup (its shard, the policy configuration, where the frozen weights are), downloads
+//! them with its session, then runs the shared round loop (`fedvla_server::native_client::volunteer`). With `--dataset PATH` it trains on a LeRobot dataset of its own
 //! instead of a shard: the dataset stays on this machine; only updates, metrics and the dataset's signature,
 //! size and moments go to the server.
 
@@ -17,11 +17,11 @@ pub struct Args {
     /// A TLS server's certificate (PEM) to trust besides the Mozilla roots: a server with a self-signed one.
     #[arg(long)]
     ca_cert: Option<PathBuf>,
-    /// Name shown to the server; the same name gets the same shard back after a restart (defaults to a random
-    /// native-XXXXXX).
+    /// Name shown to the server, owned by this machine's key for it (`~/.config/fedvla/keys/NAME.key`, made on
+    /// first use); the key gets the same shard back after a restart (defaults to a random native-XXXXXX).
     #[arg(long)]
     name: Option<String>,
-    /// Train on this shard instead of the one the server assigns.
+    /// Train on this shard instead of the one the server assigns (refused when another volunteer's key holds it).
     #[arg(long, conflicts_with = "dataset")]
     shard: Option<u32>,
     /// Train on this LeRobot dataset (v3.0 or v2.1) of your own instead of a server shard; it never leaves this
@@ -40,10 +40,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => VolunteerData::Own(path),
         None => VolunteerData::Shard(args.shard),
     };
+    let (identity, key_file) = native_client::stored_identity(&name).map_err(super::support::boxed)?;
+    // What an operator of a closed federation adds to its allow-list (`allowed-keys`).
+    tracing::info!(%name, public_key = %identity.public_key_hex(), key_file = %key_file.display(), "volunteer key");
     let volunteer = Volunteer {
         server: &args.url,
         ca_cert: args.ca_cert.as_deref(),
         name: &name,
+        identity: &identity,
         data,
         auth_token: args.auth_token,
         attack: None,

@@ -13,10 +13,12 @@ use fedvla_aggregator::parts::ServerParts;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_app::server::{self, ServerHandle};
 use fedvla_federation::{
-    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, LocalTrainer,
-    NamedTensors, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage, TrainOutput, run_client,
+    BoxError, Capabilities, ClientError, ClientMessage, ClientOptions, ClientSummary, EvalOutput, Identity,
+    Introduction, LocalTrainer, NamedTensors, PROTOCOL_VERSION, RoundMetrics, RoundTask, ServerMessage, TrainOutput,
+    identify, run_client,
 };
 use fedvla_server::native_client::NativeTransport;
+pub use fedvla_server::native_client::simulated_identity;
 use fedvla_workloads::linreg::{self, LinRegEvaluator, LinRegTrainer, LinRegWorkload};
 use fedvla_workloads::workload::Workload;
 use futures_util::{SinkExt, StreamExt};
@@ -155,8 +157,9 @@ pub fn spawn_trainer(
     spawn_trainer_at(&format!("ws://{}", handle.addr()), shard, trainer)
 }
 
-/// A native client named `client-<shard>` training with `trainer`, joining the server at `url` (one started as a
-/// process of the `fedvla` binary, which a test may kill before the client connects: a transport error then).
+/// A native client named `client-<shard>` (with its name's simulated key) training with `trainer`, joining the
+/// server at `url` (one started as a process of the `fedvla` binary, which a test may kill before the client
+/// connects: a transport error then).
 pub fn spawn_trainer_at(
     url: &str,
     shard: usize,
@@ -165,8 +168,11 @@ pub fn spawn_trainer_at(
     let url = url.to_owned();
     tokio::spawn(async move {
         let mut transport = NativeTransport::connect(&url).await.map_err(ClientError::Transport)?;
-        let options =
-            ClientOptions { name: format!("client-{shard}"), auth_token: None, shard: Some(shard as u32), data: None };
+        let name = format!("client-{shard}");
+        let intro =
+            Introduction { name: name.clone(), auth_token: None, shard: Some(shard as u32), own_dataset: false };
+        let admission = identify(&mut transport, &simulated_identity(&name), &intro).await?;
+        let options = ClientOptions { session: admission.session, data: None };
         run_client(&mut transport, &mut trainer, &options, |_| {}).await
     })
 }
@@ -222,25 +228,51 @@ impl RawClient {
         Self { ws }
     }
 
-    /// Connects and joins with the current protocol version, leaving the shard to the server; returns the client
-    /// and its id.
+    /// Connects, identifies as `name` (with its name's simulated key) and joins, leaving the shard to the server;
+    /// returns the client and its id.
     pub async fn join(handle: &ServerHandle, name: &str) -> (Self, u64) {
         let (c, client_id, _) = Self::join_shard(handle, name, None).await;
         (c, client_id)
     }
 
-    /// Connects and joins announcing `shard`; returns the client, its id and its upload session.
+    /// Connects, identifies as `name` (with its name's simulated key) asking for `shard`, and joins; returns the
+    /// client, its id and its session.
     pub async fn join_shard(handle: &ServerHandle, name: &str, shard: Option<u32>) -> (Self, u64, String) {
         let mut c = Self::connect(handle).await;
-        let mut join = join_message(name, PROTOCOL_VERSION);
-        if let ClientMessage::Join { shard: announced, .. } = &mut join {
-            *announced = shard;
-        }
-        c.send(&join).await;
-        match c.recv().await {
-            Some(ServerMessage::Welcome { client_id, session, .. }) => (c, client_id, session),
+        let (client_id, session) = match c.identify(&simulated_identity(name), name, shard).await {
+            Some(ServerMessage::Admitted { client_id, session, .. }) => (client_id, session),
+            other => panic!("expected the admission, got {other:?}"),
+        };
+        match c.join_admitted().await {
+            Some(ServerMessage::Welcome { client_id: welcomed, .. }) => assert_eq!(welcomed, client_id),
             other => panic!("expected welcome, got {other:?}"),
         }
+        (c, client_id, session)
+    }
+
+    /// The challenge's nonce, the server's first message.
+    pub async fn challenge(&mut self) -> String {
+        match self.recv().await {
+            Some(ServerMessage::Challenge { nonce }) => nonce,
+            other => panic!("expected a challenge, got {other:?}"),
+        }
+    }
+
+    /// Answers the challenge as `name` with `identity`'s proof, asking for `shard`; the server's answer.
+    pub async fn identify(&mut self, identity: &Identity, name: &str, shard: Option<u32>) -> Option<ServerMessage> {
+        let nonce = self.challenge().await;
+        self.send(&identify_message(identity, &nonce, name, shard, PROTOCOL_VERSION)).await;
+        self.recv().await
+    }
+
+    /// Joins after the admission; the server's answer.
+    pub async fn join_admitted(&mut self) -> Option<ServerMessage> {
+        self.send(&ClientMessage::Join {
+            capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
+            data: None,
+        })
+        .await;
+        self.recv().await
     }
 
     /// Waits for the next round task (skipping other messages).
@@ -292,14 +324,22 @@ impl RawClient {
     }
 }
 
-pub fn join_message(name: &str, protocol_version: u16) -> ClientMessage {
-    ClientMessage::Join {
+/// The identify answering `nonce` as `name`, proven with `identity`, asking for `shard`, in `protocol_version`.
+pub fn identify_message(
+    identity: &Identity,
+    nonce: &str,
+    name: &str,
+    shard: Option<u32>,
+    protocol_version: u16,
+) -> ClientMessage {
+    ClientMessage::Identify {
         protocol_version,
         auth_token: None,
         name: name.into(),
-        capabilities: Capabilities { backend: "test".into(), memory_bytes: 0 },
-        shard: None,
-        data: None,
+        public_key: identity.public_key_hex(),
+        signature: identity.prove(nonce, name),
+        shard,
+        own_dataset: false,
     }
 }
 

@@ -1,4 +1,5 @@
-//! The client round loop shared by the native and the browser clients.
+//! The client's side of the protocol shared by the native and the browser clients: proving its identity on a new
+//! connection ([`identify`]) and the round loop ([`run_client`]).
 //!
 //! Runtime-agnostic: plain async, no executor, no clock of its own (`Instant` panics on wasm32), so the
 //! platform supplies both through [`ClientTransport`].
@@ -8,9 +9,10 @@ use std::future::Future;
 use crate::codec::{encode_delta_payload, encode_frames, encode_payload};
 use crate::data_report::{DataReport, NormalizationStats};
 use crate::error::{BoxError, TensorError};
+use crate::identity::Identity;
 use crate::protocol::{
     Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
-    ServerMessage, UpdateEncoding,
+    ServerMessage, UpdateEncoding, VolunteerSetup,
 };
 use crate::tensors::NamedTensors;
 
@@ -95,28 +97,48 @@ pub trait ClientTransport {
     /// Next text frame from the server; `None` once the connection is closed.
     fn recv_text(&mut self) -> impl Future<Output = Result<Option<String>, BoxError>>;
 
-    /// Downloads the global trainable tensors of `version` as safetensors bytes (`GET /model/{version}`).
-    fn fetch_model(&mut self, version: u64) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
+    /// Downloads the global trainable tensors of `version` as safetensors bytes (`GET /model/{version}`,
+    /// authorised by the session token from the admission).
+    fn fetch_model(&mut self, version: u64, session: &str) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
 
     /// Downloads this client's SCAFFOLD correction for `round` as safetensors bytes (`GET /scaffold/{round}`,
-    /// authorised by the session token from the welcome).
+    /// authorised by the session token).
     fn fetch_correction(&mut self, round: u64, session: &str) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
 
     /// Uploads a rollout video of `round` (`POST /rollout/{round}/{file_name}`, authorised by the session
-    /// token from the welcome).
+    /// token).
     fn upload_video(&mut self, round: u64, session: &str, video: Video) -> impl Future<Output = Result<(), BoxError>>;
 
     /// Seconds on a monotonic clock (`performance.now()` in browsers).
     fn now_seconds(&self) -> f64;
 }
 
-/// Who this client is.
+/// Who a volunteer says it is on a new connection, beside its key.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Introduction {
+    pub name: String,
+    /// The run's auth token, for a run that has one.
+    pub auth_token: Option<String>,
+    /// A shard it asks for (granted when no other key holds it); `None`: the one bound to its key, or the next.
+    pub shard: Option<u32>,
+    /// It trains on its own dataset, not on a server shard.
+    pub own_dataset: bool,
+}
+
+/// What the server grants a proven volunteer: its id, the session every download and upload presents, and its
+/// setup (its shard, the policy, where the weights are).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Admission {
+    pub client_id: u64,
+    pub session: String,
+    pub setup: VolunteerSetup,
+}
+
+/// What the round loop needs beside the transport and the trainer.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ClientOptions {
-    pub name: String,
-    pub auth_token: Option<String>,
-    /// The shard this client trains on, announced on join (the server weighs its updates by that shard).
-    pub shard: Option<u32>,
+    /// The admission's session.
+    pub session: String,
     /// What the client tells the server of its data on join (see [`DataReport`]).
     pub data: Option<DataReport>,
 }
@@ -187,8 +209,52 @@ pub enum ClientError {
     Closed,
 }
 
-/// Joins, then for each task: fetches the model if its version changed, trains, uploads the update and metrics.
-/// Returns when the server says the run is finished.
+/// Answers the server's challenge on a fresh connection with `identity`'s proof and `intro`, and returns the
+/// admission (refusing a server of another protocol version). The client then downloads what its setup names,
+/// with the admission's session, and joins with [`run_client`].
+pub async fn identify<T: ClientTransport>(
+    transport: &mut T,
+    identity: &Identity,
+    intro: &Introduction,
+) -> Result<Admission, ClientError> {
+    let mut link = Link { transport, bytes_up: 0, bytes_down: 0 };
+    let nonce = match link.recv().await? {
+        ServerMessage::Challenge { nonce } => nonce,
+        other => return Err(unexpected("a challenge", other)),
+    };
+    link.send(&ClientMessage::Identify {
+        protocol_version: PROTOCOL_VERSION,
+        auth_token: intro.auth_token.clone(),
+        name: intro.name.clone(),
+        public_key: identity.public_key_hex(),
+        signature: identity.prove(&nonce, &intro.name),
+        shard: intro.shard,
+        own_dataset: intro.own_dataset,
+    })
+    .await?;
+    let (client_id, session, setup) = match link.recv().await? {
+        ServerMessage::Admitted { client_id, session, setup } => (client_id, session, setup),
+        other => return Err(unexpected("the admission", other)),
+    };
+    if setup.protocol_version != PROTOCOL_VERSION {
+        return Err(ClientError::Protocol(format!(
+            "the server speaks protocol {}, this client {PROTOCOL_VERSION}: update the client",
+            setup.protocol_version
+        )));
+    }
+    Ok(Admission { client_id, session, setup: *setup })
+}
+
+/// The error for `got` where `expected` should have come: the server's refusal, or a protocol error.
+fn unexpected(expected: &str, got: ServerMessage) -> ClientError {
+    match got {
+        ServerMessage::Error { code, message } => ClientError::Refused { code, message },
+        other => ClientError::Protocol(format!("expected {expected}, got {other:?}")),
+    }
+}
+
+/// Joins on a connection [`identify`] admitted, then for each task: fetches the model if its version changed,
+/// trains, uploads the update and metrics. Returns when the server says the run is finished.
 pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     transport: &mut T,
     trainer: &mut L,
@@ -196,26 +262,12 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     mut on_event: impl FnMut(ClientEvent),
 ) -> Result<ClientSummary, ClientError> {
     let mut link = Link { transport, bytes_up: 0, bytes_down: 0 };
-    link.send(&ClientMessage::Join {
-        protocol_version: PROTOCOL_VERSION,
-        auth_token: options.auth_token.clone(),
-        name: options.name.clone(),
-        capabilities: trainer.capabilities(),
-        shard: options.shard,
-        data: options.data.clone(),
-    })
-    .await?;
-    let (client_id, max_frame_bytes, session) = match link.recv().await? {
-        ServerMessage::Welcome { client_id, max_frame_bytes, session, .. } => {
-            (client_id, max_frame_bytes as usize, session)
-        }
-        ServerMessage::Error { code, message } => {
-            return Err(ClientError::Refused { code, message });
-        }
-        other => {
-            return Err(ClientError::Protocol(format!("expected welcome, got {other:?}")));
-        }
+    link.send(&ClientMessage::Join { capabilities: trainer.capabilities(), data: options.data.clone() }).await?;
+    let (client_id, max_frame_bytes) = match link.recv().await? {
+        ServerMessage::Welcome { client_id, max_frame_bytes, .. } => (client_id, max_frame_bytes as usize),
+        other => return Err(unexpected("welcome", other)),
     };
+    let session = &options.session;
     on_event(ClientEvent::Joined { client_id });
     let mut summary = ClientSummary { client_id, ..ClientSummary::default() };
     let mut global: Option<(u64, NamedTensors)> = None;
@@ -228,12 +280,12 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 let bytes_before = link.bytes_up;
                 let tensors = match global.take() {
                     Some((version, tensors)) if version == task.model_version => tensors,
-                    _ => link.fetch_model(task.model_version).await?,
+                    _ => link.fetch_model(task.model_version, session).await?,
                 };
                 trainer.set_global(&tensors).map_err(ClientError::Trainer)?;
                 let global = &global.insert((task.model_version, tensors)).1;
                 let correction = match task.strategy.control_variates {
-                    true => link.fetch_correction(task.round, &session).await?,
+                    true => link.fetch_correction(task.round, session).await?,
                     false => NamedTensors::new(),
                 };
                 trainer.set_correction(&correction).map_err(ClientError::Trainer)?;
@@ -254,7 +306,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                             episode.video = Some(video.file_name.clone());
                             link.bytes_up += video.bytes.len() as u64;
                             link.transport
-                                .upload_video(task.round, &session, video)
+                                .upload_video(task.round, session, video)
                                 .await
                                 .map_err(ClientError::Transport)?;
                         }
@@ -328,7 +380,9 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 summary.bytes_down = link.bytes_down;
                 return Ok(summary);
             }
-            other @ ServerMessage::Welcome { .. } => {
+            other @ (ServerMessage::Welcome { .. }
+            | ServerMessage::Challenge { .. }
+            | ServerMessage::Admitted { .. }) => {
                 return Err(ClientError::Protocol(format!("unexpected {other:?}")));
             }
         }
@@ -384,8 +438,8 @@ impl<T: ClientTransport> Link<'_, T> {
         serde_json::from_str(&text).map_err(|e| ClientError::Protocol(format!("bad server message: {e}")))
     }
 
-    async fn fetch_model(&mut self, version: u64) -> Result<NamedTensors, ClientError> {
-        let bytes = self.transport.fetch_model(version).await.map_err(ClientError::Transport)?;
+    async fn fetch_model(&mut self, version: u64, session: &str) -> Result<NamedTensors, ClientError> {
+        let bytes = self.transport.fetch_model(version, session).await.map_err(ClientError::Transport)?;
         self.bytes_down += bytes.len() as u64;
         checked_tensors(&bytes).map_err(|source| ClientError::Model { version, source })
     }

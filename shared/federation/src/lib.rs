@@ -9,6 +9,7 @@ pub mod codec;
 pub mod data_report;
 pub mod error;
 pub mod evaluate;
+pub mod identity;
 pub mod protocol;
 mod quantize;
 mod reader;
@@ -17,8 +18,8 @@ pub mod strategy;
 pub mod tensors;
 
 pub use client::{
-    ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput, LocalTrainer, RolloutOutput,
-    TrainOutput, Video, run_client,
+    Admission, ClientError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, EvalOutput, Introduction,
+    LocalTrainer, RolloutOutput, TrainOutput, Video, identify, run_client,
 };
 pub use codec::{Reassembler, UpdateLimits, UpdateValues};
 pub use data_report::{
@@ -26,6 +27,7 @@ pub use data_report::{
 };
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator, TaskHeldOut};
+pub use identity::Identity;
 pub use protocol::{
     Capabilities, ClientMessage, ErrorCode, InstructionTokens, LrSchedule, PROTOCOL_VERSION, RolloutEpisode,
     RolloutRequest, RolloutTasks, RoundMetrics, RoundTask, ServerMessage, StrategyParams, UpdateEncoding,

@@ -11,18 +11,21 @@ use crate::data_report::{DataReport, DatasetSignature, NormalizationStats};
 /// 4: the task names the update's encoding; the payload starts with it (compressed deltas, see [`UpdateEncoding`]).
 /// 5: the join reports the client's data ([`DataReport`]: an own dataset's signature, moments for federated
 /// statistics); the server sends the run's normalisation statistics ([`ServerMessage::NormStats`]).
-pub const PROTOCOL_VERSION: u16 = 5;
+/// 6: identities. The server opens every connection with a [`ServerMessage::Challenge`]; the client proves its key
+/// ([`ClientMessage::Identify`]) and is admitted with its session and setup ([`ServerMessage::Admitted`], which
+/// replaces `GET /api/volunteer`), downloads with the session, then joins with its data.
+pub const PROTOCOL_VERSION: u16 = 6;
 
-/// Longest volunteer name, in bytes, the server accepts (on join and in `GET /api/volunteer?name=`).
+/// Longest volunteer name, in bytes, the server accepts.
 pub const MAX_NAME_BYTES: usize = 64;
 
-/// The server's HTTP paths, spelled once for the server's router and every client.
+/// The server's HTTP paths, spelled once for the server's router and every client. Every route but the WebSocket
+/// answers only requests with `Authorization: Bearer <session>`, the session of an admitted connection
+/// ([`ServerMessage::Admitted`]); a shard's, only the session of a volunteer bound to that shard.
 pub mod routes {
+
     /// The federation WebSocket.
     pub const WS: &str = "/ws";
-    /// A volunteer's setup ([`super::VolunteerSetup`]); `?name=` keeps a returning volunteer on its shard,
-    /// `&shard=` asks for one.
-    pub const VOLUNTEER: &str = "/api/volunteer";
     /// The router's pattern of [`model`].
     pub const MODEL: &str = "/model/{version}";
     pub const SHARD: &str = "/shard/{index}";
@@ -100,18 +103,29 @@ pub struct RoundMetrics {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum ClientMessage {
-    /// First message on every connection.
-    Join {
+    /// First message on every connection, the answer to its [`ServerMessage::Challenge`]: who the volunteer is and
+    /// the proof that it holds the key (see [`crate::identity`]).
+    Identify {
         protocol_version: u16,
         auth_token: Option<String>,
-        /// Stable name chosen by the volunteer (at most [`MAX_NAME_BYTES`]); sampling and aggregation order
-        /// follow it.
+        /// Display name chosen by the volunteer (at most [`MAX_NAME_BYTES`]), owned by the first key that uses it;
+        /// sampling and aggregation order follow it.
         name: String,
-        capabilities: Capabilities,
-        /// The shard this client trains on (its setup's `shard_index`); `None` lets the server pick one for the
-        /// name. Updates are weighted by this shard's training examples, whatever their header claims.
+        /// The volunteer's Ed25519 public key, hex: what the server binds its shard and state to.
+        public_key: String,
+        /// Hex Ed25519 signature of the challenge's nonce, the name and the protocol version.
+        signature: String,
+        /// A shard the volunteer asks for (`fedvla join --shard`): granted when no other key holds it. `None`:
+        /// the key's shard, or a new key's next one round-robin.
         #[serde(default)]
         shard: Option<u32>,
+        /// The volunteer trains on its own dataset: it is given no shard.
+        #[serde(default)]
+        own_dataset: bool,
+    },
+    /// After the admission's downloads: the client is ready for rounds.
+    Join {
+        capabilities: Capabilities,
         /// The client's data: its own dataset's signature and claimed size when it brings one (the server checks
         /// it fits the run), and the moments of its state and action (for federated statistics).
         #[serde(default)]
@@ -304,14 +318,14 @@ pub struct LrSchedule {
     pub first_step: u64,
 }
 
-/// What a volunteer downloads before it joins (`GET /api/volunteer`): its shard, the policy and the frozen
+/// What a volunteer is offered on admission ([`ServerMessage::Admitted`]): its shard, the policy and the frozen
 /// weights. Everything is versioned so browsers can cache it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VolunteerSetup {
     pub protocol_version: u16,
     pub workload: WorkloadKind,
-    /// The shard this volunteer should train on (assigned round-robin), of `shard_count` (0, and unused, for a
-    /// volunteer that brings its own dataset).
+    /// The shard bound to this volunteer's key, of `shard_count` (0, and unused, for a volunteer that brings its
+    /// own dataset).
     pub shard_index: u32,
     pub shard_count: u32,
     /// `GET` paths of the shard and its manifest (size and SHA-256).
@@ -394,6 +408,10 @@ pub enum ErrorCode {
     InvalidName,
     /// A join naming a shard the run does not have.
     UnknownShard,
+    /// A name another key holds: names belong to the first key that uses them.
+    NameTaken,
+    /// A shard asked for that another key holds.
+    ShardTaken,
     /// An update dropped after aggregation: the aggregate or its evaluation failed and this update was the one
     /// farthest from the global model.
     DroppedUpdate,
@@ -415,6 +433,8 @@ impl ErrorCode {
                 | Self::ShuttingDown
                 | Self::InvalidName
                 | Self::UnknownShard
+                | Self::NameTaken
+                | Self::ShardTaken
                 | Self::IncompatibleDataset
                 | Self::JoinRateLimited
                 | Self::MessageRateLimited
@@ -446,6 +466,8 @@ impl ErrorCode {
             Self::ShuttingDown => "shutting_down",
             Self::InvalidName => "invalid_name",
             Self::UnknownShard => "unknown_shard",
+            Self::NameTaken => "name_taken",
+            Self::ShardTaken => "shard_taken",
             Self::DroppedUpdate => "dropped_update",
             Self::UpdateNormOutlier => "update_norm_outlier",
             Self::IncompatibleDataset => "incompatible_dataset",
@@ -457,13 +479,24 @@ impl ErrorCode {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum ServerMessage {
+    /// First message on every connection: a fresh random nonce (hex) the client signs to prove its key.
+    Challenge {
+        nonce: String,
+    },
+    /// The answer to a proven [`ClientMessage::Identify`]: the client's id, its session (the bearer token of every
+    /// download and upload of this connection) and what it is offered.
+    Admitted {
+        client_id: u64,
+        session: String,
+        /// Boxed: the setup is large, and the other messages are many.
+        setup: Box<VolunteerSetup>,
+    },
+    /// The answer to [`ClientMessage::Join`]: rounds may come.
     Welcome {
         client_id: u64,
         protocol_version: u16,
         /// Largest binary frame the server accepts; updates are chunked to fit.
         max_frame_bytes: u32,
-        /// Bearer token for this connection's HTTP uploads (rollout videos).
-        session: String,
     },
     RoundTask(RoundTask),
     /// The statistics the client normalises state and action with, sent before its first task (once agreed,
@@ -526,16 +559,23 @@ mod tests {
 
     #[test]
     fn messages_are_tagged_snake_case() {
-        let join = ClientMessage::Join {
+        let identify = ClientMessage::Identify {
             protocol_version: PROTOCOL_VERSION,
             auth_token: None,
             name: "c0".into(),
-            capabilities: Capabilities { backend: "ndarray".into(), memory_bytes: 1 << 30 },
+            public_key: "ab".into(),
+            signature: "cd".into(),
             shard: Some(2),
+            own_dataset: false,
+        };
+        let json = serde_json::to_string(&identify).unwrap();
+        assert!(json.starts_with(&format!(r#"{{"type":"identify","protocol_version":{PROTOCOL_VERSION}"#)), "{json}");
+        assert_eq!(serde_json::from_str::<ClientMessage>(&json).unwrap(), identify);
+        let join = ClientMessage::Join {
+            capabilities: Capabilities { backend: "ndarray".into(), memory_bytes: 1 << 30 },
             data: None,
         };
         let json = serde_json::to_string(&join).unwrap();
-        assert!(json.starts_with(&format!(r#"{{"type":"join","protocol_version":{PROTOCOL_VERSION}"#)), "{json}");
         assert_eq!(serde_json::from_str::<ClientMessage>(&json).unwrap(), join);
 
         let err = ServerMessage::Error { code: ErrorCode::NonFinite, message: "x".into() };
@@ -555,6 +595,8 @@ mod tests {
             ErrorCode::DroppedUpdate,
             ErrorCode::UpdateNormOutlier,
             ErrorCode::IncompatibleDataset,
+            ErrorCode::NameTaken,
+            ErrorCode::ShardTaken,
         ] {
             assert_eq!(serde_json::to_string(&code).unwrap(), format!("\"{}\"", code.as_str()));
         }

@@ -159,12 +159,17 @@ fn compressed_payloads_never_panic() {
 #[test]
 fn protocol_messages_never_panic() {
     let valid: Vec<String> = [
-        ClientMessage::Join {
-            protocol_version: 3,
+        ClientMessage::Identify {
+            protocol_version: 6,
             auth_token: Some("token".into()),
             name: "ada".into(),
-            capabilities: Capabilities { backend: "webgpu".into(), memory_bytes: 1 << 30 },
+            public_key: "ab".repeat(32),
+            signature: "cd".repeat(64),
             shard: Some(1),
+            own_dataset: false,
+        },
+        ClientMessage::Join {
+            capabilities: Capabilities { backend: "webgpu".into(), memory_bytes: 1 << 30 },
             data: Some(DataReport {
                 own: Some(OwnDataset {
                     signature: DatasetSignature {

@@ -1,9 +1,11 @@
-//! A volunteer's start-up, the same natively and in the browser: fetch the setup (`GET /api/volunteer`), check it
-//! is a server this client can serve (protocol version, workload), download the frozen weights, the shard (checked
+//! A volunteer's start-up, the same natively and in the browser: its key pair proves it on a new connection and
+//! the server admits it with a session and its setup ([`fedvla_federation::identify`]); with that session it
+//! checks the setup is a workload it can serve, downloads the frozen weights, the shard bound to its key (checked
 //! against its manifest's size and SHA-256; or, for a volunteer with its own dataset, the run's tokenizer to pack
-//! that dataset with) and the global model, and build the trainer. Only the downloading
-//! differs, behind [`Fetch`]: natively a plain HTTP GET, in the browser a fetch with progress that keeps content
-//! under a content key in the Cache API.
+//! that dataset with) and the global model, builds the trainer, and joins ([`fedvla_federation::run_client`]).
+//! Only the I/O differs: the key's storage, and the downloading behind [`Fetch`] (natively a plain HTTP GET, in the
+//! browser a fetch with progress that keeps content under a content key in the Cache API), each presenting the
+//! admission's session.
 
 use std::future::Future;
 use std::path::Path;
@@ -11,7 +13,7 @@ use std::path::Path;
 use burn::tensor::Device;
 use fedvla_data::shard::verify_shard_bytes;
 use fedvla_data::{ClientShard, ShardFileManifest};
-use fedvla_federation::{BoxError, PROTOCOL_VERSION, VolunteerSetup, WorkloadKind, routes};
+use fedvla_federation::{BoxError, VolunteerSetup, WorkloadKind, routes};
 use fedvla_policy::weights::parse_safetensors;
 use fedvla_policy::{SmolVlaConfig, Tokenizer};
 
@@ -19,38 +21,11 @@ use crate::examples::ShardExamples;
 use crate::rollout::SimTasks;
 use crate::trainer::SmolVlaTrainer;
 
-/// How a volunteer downloads from its server.
+/// How a volunteer downloads from its server, with its admission's session.
 pub trait Fetch {
-    /// `GET path` on the server. `cache_key`, when given, names content that never changes under that key (it
-    /// carries a content hash), which a client may keep; `what` names the download for progress.
+    /// `GET path` on the server, presenting the session. `cache_key`, when given, names content that never changes
+    /// under that key (it carries a content hash), which a client may keep; `what` names the download for progress.
     fn get(&self, path: &str, what: &str, cache_key: Option<&str>) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
-}
-
-/// What the server offers volunteer `name`: a new name gets the next shard round-robin, a returning one its
-/// shard again; `shard` asks for that one (it becomes the name's). Refuses a server of another protocol version.
-pub async fn fetch_setup(fetch: &impl Fetch, name: &str, shard: Option<u32>) -> Result<VolunteerSetup, BoxError> {
-    let shard = shard.map(|s| format!("&shard={s}")).unwrap_or_default();
-    setup_with(fetch, name, &shard).await
-}
-
-/// What the server offers volunteer `name`, which brings its own dataset: no shard is assigned to it.
-pub async fn fetch_own_data_setup(fetch: &impl Fetch, name: &str) -> Result<VolunteerSetup, BoxError> {
-    setup_with(fetch, name, "&own_dataset=true").await
-}
-
-async fn setup_with(fetch: &impl Fetch, name: &str, query: &str) -> Result<VolunteerSetup, BoxError> {
-    let name = percent_encoding::utf8_percent_encode(name, percent_encoding::NON_ALPHANUMERIC);
-    let bytes = fetch.get(&format!("{}?name={name}{query}", routes::VOLUNTEER), "setup", None).await?;
-    let setup: VolunteerSetup =
-        serde_json::from_slice(&bytes).map_err(|e| format!("GET {}: {e}", routes::VOLUNTEER))?;
-    if setup.protocol_version != PROTOCOL_VERSION {
-        return Err(format!(
-            "the server speaks protocol {}, this client {PROTOCOL_VERSION}: update the client",
-            setup.protocol_version
-        )
-        .into());
-    }
-    Ok(setup)
 }
 
 /// A shard and its manifest, the shard checked against the manifest's size and SHA-256 before use (and kept

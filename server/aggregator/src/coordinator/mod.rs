@@ -201,7 +201,7 @@ impl Running {
     /// normalisation statistics, records them and sends them to every client, the evaluator and the exporters.
     /// Clients that reported no moments are left out; with none at all the run keeps the dataset's.
     async fn agree_stats(&mut self, round: u64) -> Result<(), CoordinatorError> {
-        let reports: Vec<&DataReport> = self.clients.values().filter_map(|c| c.report.as_ref()).collect();
+        let reports: Vec<&DataReport> = self.clients.values().filter_map(|c| c.report.as_deref()).collect();
         let stats = match NormalizationStats::combine(&reports) {
             Ok(stats) => stats,
             Err(reason) => {

@@ -157,8 +157,10 @@ impl Running {
                 Some(DataSource::Shard { index, .. }) => Some(index as u64),
                 _ => None,
             };
-            let key = shard.unwrap_or_else(|| fnv1a(name));
-            // A shard's own layouts: a volunteer without one gets a block by its name.
+            // Strategy state (SCAFFOLD's variates, error feedback) follows the shard bound to the client's key, or
+            // the key itself: never a name, which anyone can type.
+            let key = shard.unwrap_or_else(|| fnv1a(&client.public_key));
+            // A shard's own layouts: a volunteer without one gets a block by its key.
             let block = shard.unwrap_or(key % 1_000);
             let strategy = self.c.strategy.lock().expect("strategy lock");
             match strategy.client_correction(key).map(|c| c.to_safetensors()) {
@@ -252,7 +254,7 @@ impl Running {
         // Each event concerns at most one participant, so the map is taken once.
         let mut participant = |id: u64| participants.take().and_then(|p| p.get_mut(&id));
         match event {
-            Event::Joined { client_id, name, capabilities, data, report, outbox } => {
+            Event::Joined { client_id, name, public_key, capabilities, data, report, outbox } => {
                 tracing::debug!(client_id, ?capabilities, ?data, "registered");
                 self.observe(RunEvent::ClientJoined {
                     id: client_id,
@@ -263,7 +265,7 @@ impl Running {
                 if let Some(stats) = &self.c.norm_stats {
                     outbox.send(ServerMessage::NormStats(stats.clone())).ok();
                 }
-                self.clients.insert(client_id, ClientEntry { name, data, report, outbox });
+                self.clients.insert(client_id, ClientEntry { name, public_key, data, report, outbox });
             }
             Event::Left { client_id } => {
                 self.clients.remove(&client_id);

@@ -26,11 +26,14 @@ pub enum Event {
     Joined {
         client_id: u64,
         name: String,
+        /// The Ed25519 public key (hex) the client proved: its strategy state follows it when it has no shard.
+        public_key: String,
         capabilities: Capabilities,
         /// What the client trains on; `None` when the workload offers no shards (its updates weigh equally).
         data: Option<DataSource>,
         /// What it told of its data on join (moments for federated statistics).
-        report: Option<DataReport>,
+        /// Boxed: joins are rare, the channel's other events many.
+        report: Option<Box<DataReport>>,
         outbox: mpsc::UnboundedSender<ServerMessage>,
     },
     Left {
@@ -166,8 +169,9 @@ pub struct Coordinator {
 
 pub(super) struct ClientEntry {
     pub(super) name: String,
+    pub(super) public_key: String,
     pub(super) data: Option<DataSource>,
-    pub(super) report: Option<DataReport>,
+    pub(super) report: Option<Box<DataReport>>,
     pub(super) outbox: mpsc::UnboundedSender<ServerMessage>,
 }
 

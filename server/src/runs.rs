@@ -195,10 +195,12 @@ fn spawn_client(
     std::thread::spawn(move || {
         let client = async move {
             let Server { url, ca_cert, auth_token } = server;
+            let identity = native_client::simulated_identity(&name);
             let volunteer = Volunteer {
                 server: &url,
                 ca_cert: ca_cert.as_deref(),
                 name: &name,
+                identity: &identity,
                 data: match &data {
                     SimulatedData::Shard(shard) => VolunteerData::Shard(Some(*shard)),
                     SimulatedData::Own(path) => VolunteerData::Own(path),

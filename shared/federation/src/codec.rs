@@ -172,6 +172,14 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec, encoding: UpdateEncodin
         let name = std::str::from_utf8(r.bytes(name_len)?)
             .map_err(|_| CodecError::Malformed("tensor name is not UTF-8".into()))?
             .to_owned();
+        // Only the spec's tensors, each once, are kept while the rest is read: what a payload makes the reader
+        // hold is at most the spec's size, however many (empty) tensors it claims.
+        let Some(expected) = spec.shape(&name) else {
+            return Err(CodecError::Tensor(TensorError::Unexpected(name)));
+        };
+        if out.get(&name).is_some() {
+            return Err(CodecError::Malformed(format!("tensor `{name}` appears twice")));
+        }
         let rank = r.u32()? as usize;
         if rank > MAX_RANK {
             return Err(CodecError::Malformed(format!("tensor `{name}` has rank {rank} (max {MAX_RANK})")));
@@ -181,19 +189,15 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec, encoding: UpdateEncodin
         let numel = shape
             .iter()
             .try_fold(1usize, |acc, &d| acc.checked_mul(d))
-            .filter(|&n| n <= spec.shape(&name).map_or(0, |s| s.iter().product()))
-            .ok_or_else(|| match spec.shape(&name) {
-                Some(expected) => CodecError::Tensor(TensorError::ShapeMismatch {
+            .filter(|&n| n <= expected.iter().product())
+            .ok_or_else(|| {
+                CodecError::Tensor(TensorError::ShapeMismatch {
                     name: name.clone(),
                     expected: expected.to_vec(),
                     got: shape.clone(),
-                }),
-                None => CodecError::Tensor(TensorError::Unexpected(name.clone())),
+                })
             })?;
         let values = read_values(encoding, numel, &mut r, &name)?;
-        if out.get(&name).is_some() {
-            return Err(CodecError::Malformed(format!("tensor `{name}` appears twice")));
-        }
         out.insert(name, shape, values)?;
     }
     if r.remaining() != 0 {

@@ -10,8 +10,8 @@ use fedvla_federation::codec::{
 };
 use fedvla_federation::protocol::RolloutEpisode;
 use fedvla_federation::{
-    Capabilities, ClientMessage, DataReport, DatasetSignature, FeatureMoments, NamedTensors, OwnDataset, ServerMessage,
-    TensorSpec, UpdateEncoding,
+    Capabilities, ClientMessage, CodecError, DataReport, DatasetSignature, FeatureMoments, NamedTensors, OwnDataset,
+    ServerMessage, TensorError, TensorSpec, UpdateEncoding,
 };
 
 /// SplitMix64: a seeded stream of cases, the same on every run.
@@ -135,6 +135,42 @@ fn update_frames_and_payloads_never_panic_nor_exceed_limits() {
     for _ in 0..cases() {
         let input = if rng.below(2) == 0 { rng.mutate(&payload) } else { rng.bytes(700) };
         check_decode(&input, &spec, UpdateEncoding::F32);
+    }
+}
+
+/// Found by the cargo-fuzz target `update_codec` (fuzz/), whose memory bound it broke: a payload of many empty
+/// tensors (rank 1, dimension 0) under names outside the spec was read to its end, keeping each, before the
+/// spec refused it: 18,895 bytes of payload held 162,256 bytes (8.6x; at the base model's 400 MB payload limit,
+/// gigabytes). A name outside the spec is now refused where it stands, and a repeated one before its values.
+#[test]
+fn tensors_outside_the_spec_or_repeated_are_refused_before_they_are_read() {
+    let spec = tensors().spec();
+    let header = |out: &mut Vec<u8>, name: &str, shape: &[u64]| {
+        out.extend((name.len() as u32).to_le_bytes());
+        out.extend(name.as_bytes());
+        out.extend((shape.len() as u32).to_le_bytes());
+        for d in shape {
+            out.extend(d.to_le_bytes());
+        }
+    };
+    let mut empties = encode_payload(&NamedTensors::new());
+    empties[1..5].copy_from_slice(&1000u32.to_le_bytes());
+    for i in 0..1000 {
+        header(&mut empties, &format!("x{i}"), &[0]);
+    }
+    match decode_payload(&empties, &spec, UpdateEncoding::F32) {
+        Err(CodecError::Tensor(TensorError::Unexpected(name))) => assert_eq!(name, "x0"),
+        other => panic!("the first tensor outside the spec is refused, not {other:?}"),
+    }
+    // A spec tensor, then its name again with a header claiming its size and no values.
+    let mut bias = NamedTensors::new();
+    bias.insert("model.expert.b", vec![4], vec![0.5; 4]).unwrap();
+    let mut repeated = encode_payload(&bias);
+    repeated[1..5].copy_from_slice(&2u32.to_le_bytes());
+    header(&mut repeated, "model.expert.b", &[4]);
+    match decode_payload(&repeated, &spec, UpdateEncoding::F32) {
+        Err(CodecError::Malformed(why)) => assert!(why.contains("appears twice"), "{why}"),
+        other => panic!("a repeated tensor is refused, not {other:?}"),
     }
 }
 

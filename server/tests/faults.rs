@@ -21,7 +21,8 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     let good: Vec<_> = (0..2).map(|shard| spawn_client(&handle, shard, None)).collect();
     let (straggler, _) = spawn_client(&handle, 2, Some(1));
     // A client that takes its task and disconnects without answering.
-    let (mut dropper, _) = RawClient::join(&handle, "client-3").await;
+    // Its own shard asked for: one dealt round-robin could be one the clients above ask for (shard_taken).
+    let (mut dropper, _, _) = RawClient::join_shard(&handle, "client-3", Some(3)).await;
     // A client that uploads its update, then disconnects before the round closes: its update still counts, with
     // the weight of its shard, not the 10 examples it claims.
     let (mut leaver, _, _) = RawClient::join_shard(&handle, "client-4", Some(4)).await;

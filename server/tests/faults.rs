@@ -175,7 +175,8 @@ fn expect_error(reply: Option<ServerMessage>, code: ErrorCode, needle: &str) {
 #[tokio::test]
 async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     let base = tempfile::tempdir().unwrap();
-    let cfg = config("num-server-rounds=1");
+    // Shards 3 and 4 for the bad clients: the good ones ask for 0 to 2, which a key holding them would refuse.
+    let cfg = config("num-server-rounds=1 num-clients=5");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     let good_weight = linreg::initial_model(0).get(WEIGHT).unwrap().values.clone();
@@ -188,7 +189,7 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     assert_eq!(c.recv().await, None, "connection closed after a fatal error");
 
     // Non-fatal errors, one connection.
-    let (mut c, _) = RawClient::join(&handle, "bad").await;
+    let (mut c, _, _) = RawClient::join_shard(&handle, "bad", Some(3)).await;
     c.send_text("{\"type\":\"metrics\", \"round\": \"one\"}".into()).await;
     expect_error(c.recv().await, ErrorCode::MalformedMessage, "bad control message");
 
@@ -238,7 +239,7 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     assert_eq!(c.recv().await, None, "connection closed after a fatal error");
 
     // A valid update outside any round is refused as stale, not aggregated.
-    let (mut c, _) = RawClient::join(&handle, "early").await;
+    let (mut c, _, _) = RawClient::join_shard(&handle, "early", Some(4)).await;
     expect_error(upload(&mut c, &head(good_weight, vec![0.0])).await, ErrorCode::StaleRound, "not expected");
     drop(c);
 

@@ -464,8 +464,8 @@ async fn www_dir_pages_with_content_types_and_no_way_out() {
     )
     .await;
     assert_eq!(ranged.body, b"contents", "a range is of the file itself");
-    // The API's own routes are not shadowed by the pages.
-    assert_eq!(request(&handle, "GET", "/model/0", None, "").await.status, StatusCode::OK);
+    // The API's own routes are not shadowed by the pages: a model answers as the API does (no session, no model).
+    assert_eq!(request(&handle, "GET", "/model/0", None, "").await.status, StatusCode::UNAUTHORIZED);
     handle.kill();
 
     // No www dir at all: pages are 404s naming it, the API works.

@@ -188,10 +188,9 @@ fn tasks_are_listed_one_a_line_and_eval_takes_them_or_names_the_known_ones() {
     for name in names {
         assert!(stderr.contains(name), "{stderr}");
     }
+    // A policy takes tasks too (its rollouts cycle through them): the command line accepts them, and a policy
+    // directory that is not there is refused by name.
     let run = fedvla(&["eval", "--policy", "p", "--task", "stack", "--episodes", "1", "--out", "never"]);
     let stderr = String::from_utf8_lossy(&run.stderr);
-    assert!(
-        !run.status.success() && stderr.contains("'--policy <POLICY>' cannot be used with '--task <TASK>'"),
-        "a policy is rolled out on the first task only: {stderr}"
-    );
+    assert!(!run.status.success() && stderr.contains("loading policy p"), "{stderr}");
 }

@@ -197,6 +197,17 @@ pub fn episodes_to_partition(
     Ok(episodes)
 }
 
+/// How a run splits its dataset's episodes among its clients and the server.
+fn partition_config(config: &RunConfig) -> PartitionConfig {
+    PartitionConfig {
+        num_clients: config.num_clients,
+        strategy: partition_strategy(config),
+        client_held_out_fraction: CLIENT_HELD_OUT,
+        server_held_out_fraction: SERVER_HELD_OUT,
+        seed: config.seed,
+    }
+}
+
 /// `model-size` with the run configuration's changes to it (what is trained, image and patch size, action chunk).
 fn model_config(config: &RunConfig) -> anyhow::Result<SmolVlaConfig> {
     let from_checkpoint = !config.init_policy.is_empty();
@@ -328,14 +339,7 @@ impl SmolVlaWorkload {
             cfg.vlm.text_config.vocab_size,
             config.model_size
         );
-        let partition_config = PartitionConfig {
-            num_clients: config.num_clients,
-            strategy: partition_strategy(config),
-            client_held_out_fraction: CLIENT_HELD_OUT,
-            server_held_out_fraction: SERVER_HELD_OUT,
-            seed: config.seed,
-        };
-        let parts = partition(&episodes_to_partition(config, &root, &dataset)?, &partition_config)?;
+        let parts = partition(&episodes_to_partition(config, &root, &dataset)?, &partition_config(config))?;
         std::fs::create_dir_all(shard_dir).with_context(|| format!("creating {}", shard_dir.display()))?;
         let spec = shard_spec(&cfg);
         let task_ids =
@@ -509,16 +513,7 @@ mod tests {
     fn by_task_and_dirichlet_partitionings_are_reachable_from_the_configuration() {
         let config = |overrides: &str| RunConfig::default().with_overrides(overrides).unwrap();
         let episodes: Vec<EpisodeTask> = (0..40).map(|i| EpisodeTask { episode_index: i, task_index: i % 4 }).collect();
-        let split = |config: &RunConfig| {
-            let partition_config = PartitionConfig {
-                num_clients: config.num_clients,
-                strategy: partition_strategy(config),
-                client_held_out_fraction: CLIENT_HELD_OUT,
-                server_held_out_fraction: SERVER_HELD_OUT,
-                seed: config.seed,
-            };
-            partition(&episodes, &partition_config).unwrap()
-        };
+        let split = |config: &RunConfig| partition(&episodes, &partition_config(config)).unwrap();
 
         let by_task = config("partitioning=by-task num-clients=4");
         assert_eq!(partition_strategy(&by_task), PartitionStrategy::ByTask);

@@ -90,6 +90,13 @@ pub enum AggregateError {
     Loss { index: usize, rule: &'static str, loss: Option<f64> },
     #[error("update {index}: {rule} needs {what}, which the server does not know of it")]
     Unknown { index: usize, rule: &'static str, what: &'static str },
+    #[error(
+        "update {index} holds {value:e}, beyond the {limit:e} in magnitude the exact accumulator sums (a model's \
+         values are far smaller)"
+    )]
+    OutOfRange { index: usize, value: f64, limit: f64 },
+    #[error("the round's weighted values sum beyond what the exact accumulator holds")]
+    Overflow,
     #[error("the aggregate is not a usable model: {0}")]
     Aggregate(TensorError),
 }

@@ -37,5 +37,6 @@ pub use seed::{fnv1a, mix};
 pub use strategy::{
     Adaptivity, Aggregation, Bulyan, ClipNorm, ClippedUpdates, Contribution, DpFedAvg, FedAdaptive, FedAvg, FedAvgM,
     FedMedian, FedProx, FedTrimmedAvg, Krum, PrivacyReport, QFedAvg, Scaffold, Step, Strategy, WeightedMean, aggregate,
+    conclude,
 };
 pub use tensors::{NamedTensors, Tensor, TensorSpec};

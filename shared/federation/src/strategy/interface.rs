@@ -87,7 +87,7 @@ pub trait Strategy: Send {
     }
 }
 
-/// Every update of a round folded in order: the aggregate of `strategy` over `updates` from `global`, and the
+/// Every update of a round folded in the order given: the aggregate of `strategy` over `updates` from `global`, and the
 /// step it leads to (uncommitted).
 pub fn aggregate<'a>(
     strategy: &dyn Strategy,
@@ -100,9 +100,20 @@ pub fn aggregate<'a>(
             AggregateError::Mismatch { source, .. } => AggregateError::Mismatch { index, source },
             AggregateError::Loss { rule, loss, .. } => AggregateError::Loss { index, rule, loss },
             AggregateError::Unknown { rule, what, .. } => AggregateError::Unknown { index, rule, what },
+            AggregateError::OutOfRange { value, limit, .. } => AggregateError::OutOfRange { index, value, limit },
             other => other,
         })?;
     }
+    conclude(strategy, global, round)
+}
+
+/// Closes a round whose updates `round` folded (as they arrived): its aggregate, and the step it leads to from
+/// `global` (uncommitted), checked finite.
+pub fn conclude(
+    strategy: &dyn Strategy,
+    global: &NamedTensors,
+    round: Box<dyn Aggregation>,
+) -> Result<Step, AggregateError> {
     let step = strategy.step(global, round.finish()?)?;
     // Finite inputs average to finite values; the check keeps that promise for every strategy's output.
     step.global.validate(&global.spec()).map_err(AggregateError::Aggregate)?;

@@ -1,13 +1,14 @@
 //! The example-weighted mean of the clients' models: FedAvg, and FedProx, whose difference is on the clients.
 
+use super::exact::{ExactSum, out_of_range};
 use super::interface::{Aggregation, Contribution, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
-/// Federated averaging: the example-weighted mean of the clients' tensors, accumulated in f64 as updates arrive
-/// (memory: one f64 per value, whatever the number of clients). The example total is summed in u128, so no set
-/// of u64 weights can wrap it.
+/// Federated averaging: the example-weighted mean of the clients' tensors, summed exactly as updates arrive
+/// ([`super::exact`]: memory of 16 bytes a value whatever the number of clients, and the same aggregate in any
+/// arrival order). The example total is summed in u128, so no set of u64 weights can wrap it.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct FedAvg;
 
@@ -38,33 +39,35 @@ impl Strategy for FedProx {
     }
 }
 
-/// The running example-weighted sum of a round's updates.
+/// The running example-weighted sum of a round's updates, exact and order-independent.
 pub struct WeightedMean {
-    /// Names and shapes of the global model, and the sum per value.
-    sums: Vec<(String, Vec<usize>, Vec<f64>)>,
+    global: NamedTensors,
     spec: crate::tensors::TensorSpec,
+    sum: ExactSum,
     total: u128,
     folded: usize,
 }
 
 impl WeightedMean {
     pub fn new(global: &NamedTensors) -> Self {
-        let sums =
-            global.iter().map(|(name, t)| (name.to_owned(), t.shape.clone(), vec![0f64; t.values.len()])).collect();
-        Self { sums, spec: global.spec(), total: 0, folded: 0 }
+        let len = global.iter().map(|(_, t)| t.values.len()).sum();
+        Self { global: global.clone(), spec: global.spec(), sum: ExactSum::zeros(len), total: 0, folded: 0 }
     }
 }
 
 impl Aggregation for WeightedMean {
     fn fold(&mut self, Contribution { tensors, examples, .. }: Contribution<'_>) -> Result<(), AggregateError> {
-        tensors.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index: self.folded, source })?;
-        let w = examples as f64;
-        for (name, _, sum) in &mut self.sums {
-            let values = &tensors.get(name).expect("validated against the global spec").values;
-            for (a, v) in sum.iter_mut().zip(values) {
-                *a += w * f64::from(*v);
-            }
-        }
+        let index = self.folded;
+        tensors.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index, source })?;
+        // All values first: an out-of-range one leaves the sum as it was.
+        let global = &self.global;
+        let values = || {
+            global
+                .iter()
+                .flat_map(|(name, _)| &tensors.get(name).expect("validated against the global spec").values)
+                .map(|&v| f64::from(v))
+        };
+        self.sum.add(0, examples, values).map_err(out_of_range(index))?;
         self.total += u128::from(examples);
         self.folded += 1;
         Ok(())
@@ -77,11 +80,11 @@ impl Aggregation for WeightedMean {
         if self.total == 0 {
             return Err(AggregateError::ZeroExamples);
         }
-        let total = self.total as f64;
+        let mut means = self.sum.divided_by(self.total as f64)?;
         let mut out = NamedTensors::new();
-        for (name, shape, sum) in self.sums {
-            let values = sum.into_iter().map(|a| (a / total) as f32).collect();
-            out.insert(name, shape, values).expect("shape taken from the global model");
+        for (name, t) in self.global.iter() {
+            let values = means.by_ref().take(t.values.len()).map(|m| m as f32).collect();
+            out.insert(name, t.shape.clone(), values).expect("shape taken from the global model");
         }
         Ok(out)
     }
@@ -105,12 +108,23 @@ mod tests {
     }
 
     #[test]
-    fn fedavg_accumulates_in_f64() {
-        // Summed in f32, 1e8 + 1 rounds back to 1e8 and the mean would come out 0.
+    fn fedavg_sums_exactly_in_any_order() {
+        // Summed in f32 (or f64 in this order), 3e4 + 2^-30 rounds back to 3e4 and the mean would come out 0.
         let global = one([0.0, 0.0]);
-        let updates = [(one([1.0e8, 1.0]), 1), (one([1.0, 1.0e8]), 1), (one([-1.0e8, -1.0e8]), 1)];
-        let out = fedavg(&global, &updates).unwrap();
-        assert_eq!(out.get("w").unwrap().values, vec![1.0 / 3.0, 1.0 / 3.0]);
+        let tiny = 2f32.powi(-30);
+        let updates = [(one([3.0e4, tiny]), 1), (one([tiny, 3.0e4]), 1), (one([-3.0e4, -3.0e4]), 1)];
+        let want = vec![tiny / 3.0, tiny / 3.0];
+        for order in [[0, 1, 2], [2, 1, 0], [1, 2, 0]] {
+            let permuted: Vec<_> = order.iter().map(|&i| updates[i].clone()).collect();
+            assert_eq!(fedavg(&global, &permuted).unwrap().get("w").unwrap().values, want);
+        }
+    }
+
+    #[test]
+    fn fedavg_refuses_values_no_model_holds() {
+        let global = one([0.0, 0.0]);
+        let err = fedavg(&global, &[(one([1.0, 1.0]), 1), (one([1.0, 1.0e30]), 1)]).unwrap_err();
+        assert!(matches!(err, AggregateError::OutOfRange { index: 1, .. }), "{err:?}");
     }
 
     #[test]

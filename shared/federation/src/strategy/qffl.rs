@@ -6,6 +6,7 @@
 //! As in Flower's QFedAvg, `F_k` is the loss the client reports with its update (here the mean loss of its local
 //! steps, not a second pass over its shard) plus 1e-10; example counts play no part.
 
+use super::exact::{ExactSum, out_of_range};
 use super::interface::{Aggregation, Contribution, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
@@ -24,22 +25,23 @@ impl Strategy for QFedAvg {
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
-        Box::new(QFairRound { rule: *self, global: global.clone(), steps: Vec::new(), h_sum: 0.0, folded: 0 })
+        let len = global.iter().map(|(_, t)| t.values.len()).sum();
+        Box::new(QFairRound { rule: *self, global: global.clone(), steps: ExactSum::zeros(len), h: Vec::new() })
     }
 }
 
-/// The running sums of `D_k` (per value, f64, in the global model's order) and of `h_k`.
+/// The exact running sum of `D_k` ([`super::exact`], in the global model's order), and each `h_k`, summed in
+/// ascending order at the end: the step is the same in any arrival order.
 struct QFairRound {
     rule: QFedAvg,
     global: NamedTensors,
-    steps: Vec<Vec<f64>>,
-    h_sum: f64,
-    folded: usize,
+    steps: ExactSum,
+    h: Vec<f64>,
 }
 
 impl Aggregation for QFairRound {
     fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
-        let index = self.folded;
+        let index = self.h.len();
         update.tensors.validate(&self.global.spec()).map_err(|source| AggregateError::Mismatch { index, source })?;
         let loss = match update.train_loss {
             Some(loss) if loss.is_finite() && loss >= 0.0 => loss + 1e-10,
@@ -48,29 +50,30 @@ impl Aggregation for QFairRound {
         let QFedAvg { q, lr } = self.rule;
         let lipschitz = 1.0 / lr;
         let weight = loss.powf(q);
-        if self.steps.is_empty() {
-            self.steps = self.global.iter().map(|(_, t)| vec![0.0; t.values.len()]).collect();
-        }
-        let mut norm_sq = 0.0;
-        for (((_, global), step), (_, local)) in self.global.iter().zip(&mut self.steps).zip(update.tensors.iter()) {
-            for ((s, &w), &w_k) in step.iter_mut().zip(&global.values).zip(&local.values) {
-                let dw = lipschitz * (f64::from(w) - f64::from(w_k));
-                norm_sq += dw * dw;
-                *s += weight * dw;
-            }
-        }
-        self.h_sum += q * loss.powf(q - 1.0) * norm_sq + lipschitz * weight;
-        self.folded += 1;
+        let global = &self.global;
+        let dw = || {
+            global.iter().flat_map(move |(name, global)| {
+                let local = &update.tensors.get(name).expect("validated against the global spec").values;
+                global.values.iter().zip(local).map(move |(&w, &w_k)| lipschitz * (f64::from(w) - f64::from(w_k)))
+            })
+        };
+        let norm_sq: f64 = dw().map(|d| d * d).sum();
+        self.steps.add(0, 1, || dw().map(|d| weight * d)).map_err(out_of_range(index))?;
+        self.h.push(q * loss.powf(q - 1.0) * norm_sq + lipschitz * weight);
         Ok(())
     }
 
     fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError> {
-        if self.folded == 0 {
+        if self.h.is_empty() {
             return Err(AggregateError::NoUpdates);
         }
+        let mut h = self.h;
+        h.sort_by(f64::total_cmp);
+        let h_sum: f64 = h.iter().sum();
+        let mut steps = self.steps.divided_by(h_sum)?;
         let mut out = NamedTensors::new();
-        for ((name, global), step) in self.global.iter().zip(self.steps) {
-            let values = global.values.iter().zip(step).map(|(&w, s)| (f64::from(w) - s / self.h_sum) as f32).collect();
+        for (name, global) in self.global.iter() {
+            let values = global.values.iter().zip(steps.by_ref()).map(|(&w, s)| (f64::from(w) - s) as f32).collect();
             out.insert(name, global.shape.clone(), values).expect("shape taken from the global model");
         }
         Ok(out)

@@ -4,8 +4,11 @@
 //! Krum (Blanchard et al. 2017) picks the update closest to its `n - f - 2` nearest neighbours, Multi-Krum
 //! averages the `keep` best by that score (example-weighted, as Flower's). Bulyan (El Mhamdi et al. 2018) picks
 //! `n - 2f` updates by Krum one at a time, then averages, per coordinate, the `n - 4f` picked values nearest
-//! their median, so an attacker can neither win Krum's vote nor pull single coordinates. All buffer the round's
-//! updates.
+//! their median, so an attacker can neither win Krum's vote nor pull single coordinates. All need every update of
+//! the round at once, so they buffer them: memory of one model per update, bounded by the clients the round
+//! sampled (the server takes one update from each), where the streaming rules keep one sum. They decide on the
+//! updates in a canonical order (by client, then by value), so their aggregate, ties included, does not depend on
+//! the order the updates arrived in.
 
 use super::interface::{Aggregation, Contribution, Strategy};
 use crate::error::AggregateError;
@@ -148,17 +151,36 @@ fn krum_scores(distances: &[Vec<f64>], candidates: &[usize], f: usize) -> Vec<f6
         .collect()
 }
 
-/// A round's updates (and their weights), kept whole until the round closes.
+/// A round's updates (with their weights and, when known, their clients), kept whole until the round closes.
 struct Buffered {
     global: NamedTensors,
     spec: TensorSpec,
     rule: Rule,
     updates: Vec<(NamedTensors, u64)>,
+    clients: Vec<Option<u64>>,
 }
 
 impl Buffered {
     fn new(global: &NamedTensors, rule: Rule) -> Self {
-        Self { global: global.clone(), spec: global.spec(), rule, updates: Vec::new() }
+        Self { global: global.clone(), spec: global.spec(), rule, updates: Vec::new(), clients: Vec::new() }
+    }
+
+    /// The updates in the canonical order: by client, then by their values (then weights) as the global model lists
+    /// them.
+    fn into_canonical_order(self) -> Self {
+        let Self { global, spec, rule, updates, clients } = self;
+        let values = |u: &NamedTensors| -> Vec<f32> {
+            global.iter().flat_map(|(name, _)| u.get(name).expect("validated").values.iter().copied()).collect()
+        };
+        let mut keyed: Vec<_> =
+            updates.into_iter().zip(clients).map(|((u, examples), client)| (client, values(&u), examples, u)).collect();
+        keyed.sort_by(|a, b| {
+            let by_value = || a.1.iter().zip(&b.1).map(|(x, y)| x.total_cmp(y)).find(|o| o.is_ne());
+            a.0.cmp(&b.0).then_with(|| by_value().unwrap_or(std::cmp::Ordering::Equal)).then(a.2.cmp(&b.2))
+        });
+        let clients = keyed.iter().map(|k| k.0).collect();
+        let updates = keyed.into_iter().map(|(_, _, examples, u)| (u, examples)).collect();
+        Self { global, spec, rule, updates, clients }
     }
 
     /// Every update as one vector, in the global model's tensor order.
@@ -247,11 +269,12 @@ impl Buffered {
 }
 
 impl Aggregation for Buffered {
-    fn fold(&mut self, Contribution { tensors, examples, .. }: Contribution<'_>) -> Result<(), AggregateError> {
+    fn fold(&mut self, Contribution { tensors, examples, client, .. }: Contribution<'_>) -> Result<(), AggregateError> {
         tensors
             .validate(&self.spec)
             .map_err(|source| AggregateError::Mismatch { index: self.updates.len(), source })?;
         self.updates.push((tensors.clone(), examples));
+        self.clients.push(client);
         Ok(())
     }
 
@@ -259,10 +282,11 @@ impl Aggregation for Buffered {
         if self.updates.is_empty() {
             return Err(AggregateError::NoUpdates);
         }
-        match self.rule {
-            Rule::Coordinate(statistic) => Ok(self.coordinate_wise(statistic)),
-            Rule::Krum(krum) => self.krum(krum),
-            Rule::Bulyan(bulyan) => self.bulyan(bulyan),
+        let this = self.into_canonical_order();
+        match this.rule {
+            Rule::Coordinate(statistic) => Ok(this.coordinate_wise(statistic)),
+            Rule::Krum(krum) => this.krum(krum),
+            Rule::Bulyan(bulyan) => this.bulyan(bulyan),
         }
     }
 }

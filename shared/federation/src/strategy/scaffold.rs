@@ -13,6 +13,7 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use super::exact::{ExactSum, in_range, out_of_range};
 use super::interface::{Aggregation, Contribution, Step, Strategy};
 use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
@@ -90,13 +91,13 @@ impl Strategy for Scaffold {
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
-        let zeros = || global.iter().map(|(_, t)| vec![0f64; t.values.len()]).collect();
+        let len = global.iter().map(|(_, t)| t.values.len()).sum();
         Box::new(ScaffoldRound {
             global: global.clone(),
             control: Arc::clone(&self.control),
             variates: self.variates.clone(),
-            sum_change: zeros(),
-            sum_variate_change: zeros(),
+            sum_models: ExactSum::zeros(len),
+            sum_variate_change: ExactSum::zeros(len),
             new_variates: Vec::new(),
         })
     }
@@ -161,14 +162,14 @@ fn split_client(name: &str) -> Option<(u64, &str)> {
     Some((client.parse().ok()?, tensor))
 }
 
-/// The round's running sums of `y_i - x` and of `c_i+ - c_i` (f64, per value, in the global model's order), and
-/// each client's new variate.
+/// The round's exact running sums ([`super::exact`], in the global model's order) of `y_i` and of `c_i+ - c_i`,
+/// and each client's new variate (the state SCAFFOLD keeps per client anyway).
 struct ScaffoldRound {
     global: NamedTensors,
     control: Arc<NamedTensors>,
     variates: BTreeMap<u64, Arc<NamedTensors>>,
-    sum_change: Vec<Vec<f64>>,
-    sum_variate_change: Vec<Vec<f64>>,
+    sum_models: ExactSum,
+    sum_variate_change: ExactSum,
     new_variates: Vec<(u64, NamedTensors)>,
 }
 
@@ -180,26 +181,36 @@ impl Aggregation for ScaffoldRound {
         let client = update.client.ok_or_else(|| unknown("the client it came from"))?;
         let lr_sum =
             update.lr_sum.filter(|s| s.is_finite() && *s > 0.0).ok_or_else(|| unknown("its learning rates"))?;
-        let own = self.variates.get(&client);
-        let mut variate = NamedTensors::new();
-        for (((name, x), change), variate_change) in
-            self.global.iter().zip(&mut self.sum_change).zip(&mut self.sum_variate_change)
-        {
-            let y = &update.tensors.get(name).expect("validated against the global spec").values;
-            let c = self.control.get(name).map(|t| t.values.as_slice());
-            let c_i = own.and_then(|v| v.get(name)).map(|t| t.values.as_slice());
-            let mut new = Vec::with_capacity(y.len());
-            for k in 0..y.len() {
-                let (x, y) = (f64::from(x.values[k]), f64::from(y[k]));
-                let (c, c_i) = (c.map_or(0.0, |c| f64::from(c[k])), c_i.map_or(0.0, |c_i| f64::from(c_i[k])));
-                let direction = (x - y) / lr_sum;
-                change[k] += y - x;
-                variate_change[k] += direction - c;
-                new.push((c_i - c + direction) as f32);
-            }
-            variate.insert(name, x.shape.clone(), new).expect("global shape");
+        let Self { global, control, variates, sum_models, sum_variate_change, new_variates } = self;
+        let (global, control, own) = (&*global, control.as_ref(), variates.get(&client));
+        // Per tensor: x, y_i, and `c_i+ - c_i = (x - y_i) / s_i - c` per value.
+        let tensors = || {
+            global.iter().map(move |(name, x)| {
+                let y = &update.tensors.get(name).expect("validated against the global spec").values;
+                let c = control.get(name).map(|t| t.values.as_slice());
+                let variate_change = move |k: usize| {
+                    (f64::from(x.values[k]) - f64::from(y[k])) / lr_sum - c.map_or(0.0, |c| f64::from(c[k]))
+                };
+                (name, x, y, variate_change)
+            })
+        };
+        // Every value checked before any is added, so a refused update leaves the sums as they were.
+        for (_, x, y, variate_change) in tensors() {
+            in_range(y.iter().map(|&v| f64::from(v))).map_err(out_of_range(index))?;
+            in_range((0..x.values.len()).map(variate_change)).map_err(out_of_range(index))?;
         }
-        self.new_variates.push((client, variate));
+        let mut variate = NamedTensors::new();
+        let mut offset = 0;
+        for (name, x, y, variate_change) in tensors() {
+            let n = x.values.len();
+            sum_models.add(offset, 1, || y.iter().map(|&v| f64::from(v))).map_err(out_of_range(index))?;
+            sum_variate_change.add(offset, 1, || (0..n).map(variate_change)).map_err(out_of_range(index))?;
+            let c_i = own.and_then(|v| v.get(name)).map(|t| t.values.as_slice());
+            let new = (0..n).map(|k| (c_i.map_or(0.0, |c_i| f64::from(c_i[k])) + variate_change(k)) as f32);
+            variate.insert(name, x.shape.clone(), new.collect()).expect("global shape");
+            offset += n;
+        }
+        new_variates.push((client, variate));
         Ok(())
     }
 
@@ -209,15 +220,19 @@ impl Aggregation for ScaffoldRound {
             return Err(AggregateError::NoUpdates);
         }
         let (mut out, mut mean_variate_change) = (NamedTensors::new(), NamedTensors::new());
-        for (((name, x), change), variate_change) in
-            self.global.iter().zip(self.sum_change).zip(self.sum_variate_change)
-        {
-            let mean = x.values.iter().zip(change).map(|(&x, d)| (f64::from(x) + d / n as f64) as f32);
-            out.insert(name, x.shape.clone(), mean.collect()).expect("global shape");
-            let dc = variate_change.into_iter().map(|d| (d / n as f64) as f32).collect();
+        let mut means = self.sum_models.divided_by(n as f64)?;
+        let mut changes = self.sum_variate_change.divided_by(n as f64)?;
+        for (name, x) in self.global.iter() {
+            let len = x.values.len();
+            out.insert(name, x.shape.clone(), means.by_ref().take(len).map(|m| m as f32).collect())
+                .expect("global shape");
+            let dc = changes.by_ref().take(len).map(|d| d as f32).collect();
             mean_variate_change.insert(name, x.shape.clone(), dc).expect("global shape");
         }
-        ROUND.pack(&mut out, &mean_variate_change, self.new_variates.iter().map(|(client, v)| (*client, v)));
+        // In the order of the clients, not of their arrival: the state saved is the same either way.
+        let mut new_variates = self.new_variates;
+        new_variates.sort_by_key(|(client, _)| *client);
+        ROUND.pack(&mut out, &mean_variate_change, new_variates.iter().map(|(client, v)| (*client, v)));
         Ok(out)
     }
 }

@@ -49,17 +49,17 @@ impl DataError {
         }
     }
 
-    #[cfg(feature = "io")]
+    #[cfg(feature = "read")]
     pub(crate) fn parquet(path: &Path, reason: impl std::fmt::Display) -> Self {
         DataError::CorruptParquet { path: path.to_path_buf(), reason: reason.to_string() }
     }
 
-    #[cfg(feature = "io")]
+    #[cfg(feature = "read")]
     pub(crate) fn column(path: &Path, column: &str, reason: impl Into<String>) -> Self {
         DataError::BadColumn { path: path.to_path_buf(), column: column.to_string(), reason: reason.into() }
     }
 
-    #[cfg(feature = "io")]
+    #[cfg(feature = "read")]
     pub(crate) fn mp4(path: &Path, reason: impl Into<String>) -> Self {
         DataError::BadMp4 { path: path.to_path_buf(), reason: reason.into() }
     }

@@ -189,16 +189,21 @@ impl DatasetInfo {
     /// Reads `root/meta/info.json` and checks that its version is one this crate reads.
     pub fn load(root: &Path) -> Result<(Self, CodebaseVersion)> {
         let path = root.join("meta/info.json");
-        let text = std::fs::read_to_string(&path).map_err(|e| DataError::io(&path, e))?;
-        let raw: serde_json::Value = serde_json::from_str(&text)
-            .map_err(|e| DataError::InvalidJson { path: path.clone(), reason: e.to_string() })?;
+        let bytes = std::fs::read(&path).map_err(|e| DataError::io(&path, e))?;
+        Self::from_json(&path, &bytes)
+    }
+
+    /// Parses the `meta/info.json` at `path` (named in errors) and checks that its version is one this crate reads.
+    pub fn from_json(path: &Path, bytes: &[u8]) -> Result<(Self, CodebaseVersion)> {
+        let invalid = |reason: String| DataError::InvalidJson { path: path.to_path_buf(), reason };
+        let raw: serde_json::Value = serde_json::from_slice(bytes).map_err(|e| invalid(e.to_string()))?;
         let found = raw.get("codebase_version").and_then(|v| v.as_str()).unwrap_or("<missing>").to_string();
         let version = match found.as_str() {
             CODEBASE_VERSION_V30 => CodebaseVersion::V30,
             CODEBASE_VERSION_V21 => CodebaseVersion::V21,
-            _ => return Err(DataError::UnknownVersion { path, found }),
+            _ => return Err(DataError::UnknownVersion { path: path.to_path_buf(), found }),
         };
-        let info = serde_json::from_value(raw).map_err(|e| DataError::InvalidJson { path, reason: e.to_string() })?;
+        let info = serde_json::from_value(raw).map_err(|e| invalid(e.to_string()))?;
         Ok((info, version))
     }
 

@@ -13,7 +13,7 @@ use rand_distr::{Distribution, Gamma};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{DataError, Result};
-#[cfg(feature = "io")]
+#[cfg(feature = "read")]
 use crate::reader::LeRobotDataset;
 
 /// How the episodes left after the server's held-out set are dealt to clients.
@@ -83,7 +83,7 @@ pub fn held_out_count(n: usize, fraction: f64) -> usize {
 }
 
 /// The (episode, task) list of a dataset, an episode's task being its first listed task.
-#[cfg(feature = "io")]
+#[cfg(feature = "read")]
 pub fn episode_tasks(dataset: &LeRobotDataset) -> Vec<EpisodeTask> {
     dataset
         .episodes()

@@ -1,6 +1,8 @@
 //! Reading LeRobot datasets, v3.0 and legacy v2.1: metadata (info, tasks, episodes, stats), the frame
-//! table, and samples by global index with `delta_timestamps` and `<key>_is_pad` flags, decoding
-//! camera frames from the mp4 files.
+//! table, and samples by global index with `delta_timestamps` and `<key>_is_pad` flags, camera frames coming
+//! from a [`FrameSource`]. Every file is read through [`DatasetFiles`], so the same reader opens a directory on
+//! disk and a folder a browser page read into memory; [`DatasetMeta`] is the first step alone (metadata only), for
+//! a caller that loads the data files it names before opening the rest.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -8,10 +10,11 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 use crate::error::{DataError, Result};
+use crate::files::DatasetFiles;
 use crate::info::{self, CodebaseVersion, DatasetInfo, EPISODES_PATH_V30};
-use crate::stats::{DatasetStats, FeatureStats, load_stats};
+use crate::stats::{DatasetStats, FeatureStats, parse_stats};
 use crate::table::Table;
-use crate::video::{RgbImage, VideoCache};
+use crate::video::{FrameSource, RgbImage};
 
 /// LeRobot's tolerance when matching a requested time to a video frame.
 pub const VIDEO_TOLERANCE_S: f64 = 1e-4;
@@ -19,9 +22,18 @@ pub const VIDEO_TOLERANCE_S: f64 = 1e-4;
 /// Columns every frame has; everything else float-valued is a vector feature.
 const BOOKKEEPING: [&str; 5] = ["timestamp", "frame_index", "episode_index", "index", "task_index"];
 
+/// Metadata files, relative to the dataset's root.
+const INFO_PATH: &str = "meta/info.json";
+const STATS_PATH: &str = "meta/stats.json";
+const TASKS_PATH_V30: &str = "meta/tasks.parquet";
+const EPISODES_DIR_V30: &str = "meta/episodes";
+const TASKS_PATH_V21: &str = "meta/tasks.jsonl";
+const EPISODES_PATH_V21: &str = "meta/episodes.jsonl";
+
 /// Where an episode's frames of one camera live.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EpisodeVideo {
+    /// The video file, relative to the dataset's root.
     pub path: PathBuf,
     /// Time of the episode's first frame inside the file (0 for v2.1's one-file-per-episode layout).
     pub from_timestamp: f64,
@@ -63,6 +75,67 @@ pub struct Sample {
     pub is_pad: BTreeMap<String, Vec<bool>>,
 }
 
+/// A dataset's metadata: what `meta/` holds, and the data files (relative to the root) its frames lie in.
+pub struct DatasetMeta {
+    pub info: DatasetInfo,
+    pub version: CodebaseVersion,
+    /// Task strings by task index.
+    pub tasks: Vec<String>,
+    /// In frame order.
+    pub episodes: Vec<EpisodeMeta>,
+    pub stats: Option<DatasetStats>,
+    pub data_files: Vec<PathBuf>,
+}
+
+impl DatasetMeta {
+    /// `meta/info.json`, the first file a reader reads: the dataset's schema and layout version.
+    pub fn read_info(files: &dyn DatasetFiles) -> Result<(DatasetInfo, CodebaseVersion)> {
+        let path = Path::new(INFO_PATH);
+        DatasetInfo::from_json(&files.display_path(path), &files.read(path)?)
+    }
+
+    /// The metadata files [`DatasetMeta::read`] reads besides `meta/info.json`, for a dataset of `version` whose
+    /// files `files` lists (their contents need not be loaded).
+    pub fn files_to_read(version: CodebaseVersion, files: &dyn DatasetFiles) -> Result<Vec<PathBuf>> {
+        let mut out = match version {
+            CodebaseVersion::V30 => {
+                let mut out = vec![PathBuf::from(TASKS_PATH_V30)];
+                out.extend(files.list(Path::new(EPISODES_DIR_V30), "parquet")?);
+                out
+            }
+            CodebaseVersion::V21 => vec![PathBuf::from(TASKS_PATH_V21), PathBuf::from(EPISODES_PATH_V21)],
+        };
+        if files.exists(Path::new(STATS_PATH)) {
+            out.push(PathBuf::from(STATS_PATH));
+        }
+        Ok(out)
+    }
+
+    /// Reads the metadata (`meta/info.json` and [`DatasetMeta::files_to_read`]) and checks that every video file
+    /// the episodes name exists.
+    pub fn read(files: &dyn DatasetFiles) -> Result<Self> {
+        let (info, version) = Self::read_info(files)?;
+        let (tasks, episodes, data_files) = match version {
+            CodebaseVersion::V30 => load_v30_meta(files, &info)?,
+            CodebaseVersion::V21 => load_v21_meta(files, &info)?,
+        };
+        for ep in &episodes {
+            for video in ep.videos.values() {
+                if !files.exists(&video.path) {
+                    return Err(DataError::MissingFile { path: files.display_path(&video.path) });
+                }
+            }
+        }
+        let stats_path = Path::new(STATS_PATH);
+        let stats = if files.exists(stats_path) {
+            Some(parse_stats(&files.display_path(stats_path), &files.read(stats_path)?)?)
+        } else {
+            None
+        };
+        Ok(Self { info, version, tasks, episodes, stats, data_files })
+    }
+}
+
 /// A dataset opened for reading; the frame table (everything but the videos) is held in memory.
 pub struct LeRobotDataset {
     root: PathBuf,
@@ -77,29 +150,23 @@ pub struct LeRobotDataset {
     frame_index: Vec<i64>,
     episode_index: Vec<i64>,
     task_index: Vec<i64>,
-    videos: VideoCache,
+    frames: Box<dyn FrameSource>,
 }
 
 impl LeRobotDataset {
-    /// Opens the dataset at `root`, reading all metadata and frame tables and checking that every
-    /// referenced data and video file exists.
+    /// Opens the dataset directory at `root`, reading all metadata and frame tables and checking that every
+    /// referenced data and video file exists; frames are decoded from its videos when asked for.
+    #[cfg(feature = "io")]
     pub fn open(root: impl AsRef<Path>) -> Result<Self> {
-        let root = root.as_ref().to_path_buf();
-        let (info, version) = DatasetInfo::load(&root)?;
-        let (tasks, episodes, data_files) = match version {
-            CodebaseVersion::V30 => load_v30_meta(&root, &info)?,
-            CodebaseVersion::V21 => load_v21_meta(&root, &info)?,
-        };
-        for ep in &episodes {
-            for video in ep.videos.values() {
-                if !video.path.is_file() {
-                    return Err(DataError::MissingFile { path: video.path.clone() });
-                }
-            }
-        }
-        let stats_path = root.join("meta/stats.json");
-        let stats = if stats_path.is_file() { Some(load_stats(&stats_path)?) } else { None };
+        let files = std::sync::Arc::new(crate::files::DirFiles::new(root.as_ref()));
+        let meta = DatasetMeta::read(&*files)?;
+        Self::from_meta(meta, &*files, Box::new(crate::video::Mp4Frames::new(files.clone())))
+    }
 
+    /// The dataset of `meta` (read from `files`), reading its data files from `files`, its camera frames from
+    /// `frames`.
+    pub fn from_meta(meta: DatasetMeta, files: &dyn DatasetFiles, frames: Box<dyn FrameSource>) -> Result<Self> {
+        let DatasetMeta { info, version, tasks, episodes, stats, data_files } = meta;
         let vector_keys: Vec<(String, usize)> = info
             .features
             .0
@@ -112,7 +179,7 @@ impl LeRobotDataset {
         let (mut timestamp, mut frame_index, mut episode_index, mut task_index) =
             (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for path in &data_files {
-            let table = Table::read(path)?;
+            let table = Table::read(files, path)?;
             for (key, dim) in &vector_keys {
                 if let Some((_, values)) = vectors.get_mut(key) {
                     values.extend(table.f32_rows(key, *dim)?);
@@ -127,13 +194,13 @@ impl LeRobotDataset {
         if timestamp.len() != total {
             return Err(DataError::InvalidInput(format!(
                 "{}: data files hold {} rows, the episodes metadata {} frames",
-                root.display(),
+                files.root().display(),
                 timestamp.len(),
                 total
             )));
         }
         Ok(Self {
-            root,
+            root: files.root().to_path_buf(),
             info,
             version,
             tasks,
@@ -144,14 +211,18 @@ impl LeRobotDataset {
             frame_index,
             episode_index,
             task_index,
-            videos: VideoCache::default(),
+            frames,
         })
+    }
+
+    /// The same dataset with its camera frames from `frames` (a page's decoded frames, once they are in).
+    pub fn with_frames(self, frames: Box<dyn FrameSource>) -> Self {
+        Self { frames, ..self }
     }
 
     pub fn root(&self) -> &Path {
         &self.root
     }
-
     pub fn info(&self) -> &DatasetInfo {
         &self.info
     }
@@ -210,14 +281,31 @@ impl LeRobotDataset {
             .ok_or(DataError::IndexOutOfRange { index, len })
     }
 
-    /// Decodes the frames of `camera` at global indices `indices` (all from one episode).
-    pub fn camera_frames(&self, camera: &str, episode: &EpisodeMeta, indices: &[usize]) -> Result<Vec<RgbImage>> {
+    /// The video file of `camera` holding `episode`, and the times in it (seconds from the file's start) of the
+    /// frames at global indices `indices` (all from that episode).
+    pub fn frame_times<'a>(
+        &self,
+        camera: &str,
+        episode: &'a EpisodeMeta,
+        indices: &[usize],
+    ) -> Result<(&'a Path, Vec<f64>)> {
         let video = episode.videos.get(camera).ok_or_else(|| {
             DataError::InvalidInput(format!("episode {} has no video for {camera:?}", episode.episode_index))
         })?;
-        let file = self.videos.get(&video.path)?;
-        let times: Vec<f64> = indices.iter().map(|&i| video.from_timestamp + f64::from(self.timestamp[i])).collect();
-        file.frames_at(&times, VIDEO_TOLERANCE_S)
+        let times = indices
+            .iter()
+            .map(|&i| {
+                let t = self.timestamp.get(i).ok_or(DataError::IndexOutOfRange { index: i, len: self.len() })?;
+                Ok(video.from_timestamp + f64::from(*t))
+            })
+            .collect::<Result<_>>()?;
+        Ok((&video.path, times))
+    }
+
+    /// The frames of `camera` at global indices `indices` (all from one episode).
+    pub fn camera_frames(&self, camera: &str, episode: &EpisodeMeta, indices: &[usize]) -> Result<Vec<RgbImage>> {
+        let (path, times) = self.frame_times(camera, episode, indices)?;
+        self.frames.frames_at(path, &times, VIDEO_TOLERANCE_S)
     }
 
     /// Frame `index` with the features in `delta` loaded at those offsets (LeRobot's `__getitem__`).
@@ -286,23 +374,26 @@ struct VideoColumns {
 }
 
 /// v3.0: tasks.parquet, meta/episodes/**.parquet, data files referenced by the episodes.
-fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
-    let tasks_table = Table::read(&root.join("meta/tasks.parquet"))?;
+fn load_v30_meta(
+    files: &dyn DatasetFiles,
+    info: &DatasetInfo,
+) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
+    let tasks_table = Table::read(files, Path::new(TASKS_PATH_V30))?;
     let mut tasks: Vec<(i64, String)> =
         tasks_table.i64_column("task_index")?.into_iter().zip(tasks_table.string_column("task")?).collect();
     tasks.sort();
     let tasks = tasks.into_iter().map(|(_, t)| t).collect();
 
-    let episode_files = files_under(&root.join("meta/episodes"), "parquet")?;
+    let episode_files = files.list(Path::new(EPISODES_DIR_V30), "parquet")?;
     if episode_files.is_empty() {
-        return Err(DataError::MissingFile { path: info::v30_path(root, EPISODES_PATH_V30, 0, 0, None) });
+        return Err(DataError::MissingFile { path: info::v30_path(files.root(), EPISODES_PATH_V30, 0, 0, None) });
     }
     let video_keys = info.features.video_keys();
     let video_template = info.video_path.clone().unwrap_or_else(|| info::VIDEO_PATH_V30.to_string());
     let mut episodes = Vec::new();
     let mut data_files: Vec<(i64, i64)> = Vec::new();
     for path in episode_files {
-        let t = Table::read(&path)?;
+        let t = Table::read(files, &path)?;
         let index = t.i64_column("episode_index")?;
         let task_lists = t.string_list_column("tasks")?;
         let length = t.i64_column("length")?;
@@ -337,7 +428,7 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
                     .iter()
                     .map(|v| {
                         let path = info::v30_path(
-                            root,
+                            Path::new(""),
                             &video_template,
                             v.chunk[row] as u64,
                             v.file[row] as u64,
@@ -359,8 +450,10 @@ fn load_v30_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
     }
     episodes.sort_by_key(|e| e.dataset_from_index);
     data_files.sort();
-    let data_paths =
-        data_files.into_iter().map(|(c, f)| info::v30_path(root, &info.data_path, c as u64, f as u64, None)).collect();
+    let data_paths = data_files
+        .into_iter()
+        .map(|(c, f)| info::v30_path(Path::new(""), &info.data_path, c as u64, f as u64, None))
+        .collect();
     Ok((tasks, episodes, data_paths))
 }
 
@@ -405,11 +498,14 @@ struct EpisodeLine {
 }
 
 /// v2.1: JSON-lines metadata, one parquet and one mp4 per camera per episode.
-fn load_v21_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
-    let mut task_lines: Vec<TaskLine> = read_jsonl(&root.join("meta/tasks.jsonl"))?;
+fn load_v21_meta(
+    files: &dyn DatasetFiles,
+    info: &DatasetInfo,
+) -> Result<(Vec<String>, Vec<EpisodeMeta>, Vec<PathBuf>)> {
+    let mut task_lines: Vec<TaskLine> = read_jsonl(files, Path::new(TASKS_PATH_V21))?;
     task_lines.sort_by_key(|t| t.task_index);
     let tasks = task_lines.into_iter().map(|t| t.task).collect();
-    let mut lines: Vec<EpisodeLine> = read_jsonl(&root.join("meta/episodes.jsonl"))?;
+    let mut lines: Vec<EpisodeLine> = read_jsonl(files, Path::new(EPISODES_PATH_V21))?;
     lines.sort_by_key(|e| e.episode_index);
     let video_keys = info.features.video_keys();
     let chunks_size = info.chunks_size.max(1);
@@ -419,12 +515,12 @@ fn load_v21_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
     for line in lines {
         let ints =
             [("episode_chunk", line.episode_index as u64 / chunks_size), ("episode_index", line.episode_index as u64)];
-        data_paths.push(root.join(info::fill_template(&info.data_path, &ints, None)));
+        data_paths.push(PathBuf::from(info::fill_template(&info.data_path, &ints, None)));
         let videos = video_keys
             .iter()
             .filter_map(|key| {
                 let template = info.video_path.as_ref()?;
-                let path = root.join(info::fill_template(template, &ints, Some(key)));
+                let path = PathBuf::from(info::fill_template(template, &ints, Some(key)));
                 let to_timestamp = line.length as f64 / f64::from(info.fps);
                 Some((key.clone(), EpisodeVideo { path, from_timestamp: 0.0, to_timestamp }))
             })
@@ -443,39 +539,17 @@ fn load_v21_meta(root: &Path, info: &DatasetInfo) -> Result<(Vec<String>, Vec<Ep
     Ok((tasks, episodes, data_paths))
 }
 
-fn read_jsonl<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Vec<T>> {
-    let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
+fn read_jsonl<T: serde::de::DeserializeOwned>(files: &dyn DatasetFiles, path: &Path) -> Result<Vec<T>> {
+    let shown = files.display_path(path);
+    let bytes = files.read(path)?;
+    let text = std::str::from_utf8(&bytes)
+        .map_err(|e| DataError::InvalidJson { path: shown.clone(), reason: e.to_string() })?;
     text.lines()
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
         .map(|(i, l)| {
-            serde_json::from_str(l).map_err(|e| DataError::InvalidJson {
-                path: path.to_path_buf(),
-                reason: format!("line {}: {e}", i + 1),
-            })
+            serde_json::from_str(l)
+                .map_err(|e| DataError::InvalidJson { path: shown.clone(), reason: format!("line {}: {e}", i + 1) })
         })
         .collect()
-}
-
-/// Files with extension `ext` under `dir`, recursively, sorted by path.
-fn files_under(dir: &Path, ext: &str) -> Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        let entries = match std::fs::read_dir(&d) {
-            Ok(e) => e,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-            Err(e) => return Err(DataError::io(&d, e)),
-        };
-        for entry in entries {
-            let path = entry.map_err(|e| DataError::io(&d, e))?.path();
-            if path.is_dir() {
-                stack.push(path);
-            } else if path.extension().is_some_and(|e| e == ext) {
-                out.push(path);
-            }
-        }
-    }
-    out.sort();
-    Ok(out)
 }

@@ -218,8 +218,13 @@ pub fn save_stats(path: &Path, stats: &DatasetStats) -> Result<()> {
 }
 
 pub fn load_stats(path: &Path) -> Result<DatasetStats> {
-    let text = std::fs::read_to_string(path).map_err(|e| DataError::io(path, e))?;
-    let value: Value = serde_json::from_str(&text)
+    let bytes = std::fs::read(path).map_err(|e| DataError::io(path, e))?;
+    parse_stats(path, &bytes)
+}
+
+/// Parses a `meta/stats.json` (`path` names it in errors).
+pub fn parse_stats(path: &Path, bytes: &[u8]) -> Result<DatasetStats> {
+    let value: Value = serde_json::from_slice(bytes)
         .map_err(|e| DataError::InvalidJson { path: path.to_path_buf(), reason: e.to_string() })?;
     let object = value.as_object().ok_or_else(|| DataError::InvalidJson {
         path: path.to_path_buf(),

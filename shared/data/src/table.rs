@@ -2,31 +2,40 @@
 //! nested double lists for stats, string lists for tasks) and tolerant column readers for the
 //! variants older datasets carry (list vs fixed-size list, float64 vs float32, int32 vs int64).
 
-use std::fs::File;
 use std::path::{Path, PathBuf};
+#[cfg(feature = "io")]
 use std::sync::Arc;
 
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, Int32Type, Int64Type};
-use arrow_array::{
-    Array, ArrayRef, FixedSizeListArray, Float32Array, Float64Array, Int64Array, ListArray, RecordBatch, StringArray,
-};
-use arrow_schema::{DataType, Field, Schema};
+use arrow_array::{Array, ArrayRef, RecordBatch};
+#[cfg(feature = "io")]
+use arrow_array::{FixedSizeListArray, Float32Array, Float64Array, Int64Array, ListArray, StringArray};
+use arrow_schema::DataType;
+#[cfg(feature = "io")]
+use arrow_schema::{Field, Schema};
+#[cfg(feature = "io")]
 use parquet::arrow::ArrowWriter;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+#[cfg(feature = "io")]
 use parquet::basic::Compression;
+#[cfg(feature = "io")]
 use parquet::file::properties::WriterProperties;
 
 use crate::error::{DataError, Result};
+use crate::files::DatasetFiles;
 
 /// pyarrow names list children "element"; matching it keeps our schemas identical to LeRobot's.
+#[cfg(feature = "io")]
 const LIST_ITEM: &str = "element";
 
+#[cfg(feature = "io")]
 pub fn fixed_size_f32_list(flat: Vec<f32>, dim: usize) -> ArrayRef {
     let item = Arc::new(Field::new(LIST_ITEM, DataType::Float32, true));
     Arc::new(FixedSizeListArray::new(item, dim as i32, Arc::new(Float32Array::from(flat)), None))
 }
 
+#[cfg(feature = "io")]
 /// One list per row, nested to `shape` (e.g. `[6]` -> list<double>, `[3,1,1]` -> list<list<list<double>>>).
 pub fn nested_f64_list(rows: &[&[f64]], shape: &[usize]) -> ArrayRef {
     let flat: Vec<f64> = rows.iter().flat_map(|r| r.iter().copied()).collect();
@@ -40,10 +49,12 @@ pub fn nested_f64_list(rows: &[&[f64]], shape: &[usize]) -> ArrayRef {
     array
 }
 
+#[cfg(feature = "io")]
 fn arrow_buffer_offsets(groups: usize, len: usize) -> arrow_buffer::OffsetBuffer<i32> {
     arrow_buffer::OffsetBuffer::from_lengths(std::iter::repeat_n(len, groups))
 }
 
+#[cfg(feature = "io")]
 /// One single-element list<int64> per row (how LeRobot stores per-episode `count`).
 pub fn count_list(counts: &[i64]) -> ArrayRef {
     let field = Arc::new(Field::new(LIST_ITEM, DataType::Int64, true));
@@ -55,6 +66,7 @@ pub fn count_list(counts: &[i64]) -> ArrayRef {
     ))
 }
 
+#[cfg(feature = "io")]
 pub fn string_lists(rows: &[Vec<String>]) -> ArrayRef {
     let flat: Vec<&str> = rows.iter().flat_map(|r| r.iter().map(String::as_str)).collect();
     let field = Arc::new(Field::new(LIST_ITEM, DataType::Utf8, true));
@@ -62,6 +74,7 @@ pub fn string_lists(rows: &[Vec<String>]) -> ArrayRef {
     Arc::new(ListArray::new(field, offsets, Arc::new(StringArray::from(flat)), None))
 }
 
+#[cfg(feature = "io")]
 /// Writes `columns` as one snappy-compressed parquet file with `metadata` in the schema.
 pub fn write_parquet(path: &Path, columns: Vec<(&str, ArrayRef)>, metadata: Vec<(&str, String)>) -> Result<()> {
     if let Some(dir) = path.parent() {
@@ -73,7 +86,7 @@ pub fn write_parquet(path: &Path, columns: Vec<(&str, ArrayRef)>, metadata: Vec<
     ));
     let batch = RecordBatch::try_new(schema.clone(), columns.into_iter().map(|(_, a)| a).collect())
         .map_err(|e| DataError::parquet(path, e))?;
-    let file = File::create(path).map_err(|e| DataError::io(path, e))?;
+    let file = std::fs::File::create(path).map_err(|e| DataError::io(path, e))?;
     let props = WriterProperties::builder().set_compression(Compression::SNAPPY).build();
     let mut writer = ArrowWriter::try_new(file, schema, Some(props)).map_err(|e| DataError::parquet(path, e))?;
     writer.write(&batch).map_err(|e| DataError::parquet(path, e))?;
@@ -88,13 +101,15 @@ pub struct Table {
 }
 
 impl Table {
-    pub fn read(path: &Path) -> Result<Self> {
-        let file = File::open(path).map_err(|e| DataError::io(path, e))?;
-        let reader = ParquetRecordBatchReaderBuilder::try_new(file)
+    /// Reads the parquet file `path` of `files` whole.
+    pub fn read(files: &dyn DatasetFiles, path: &Path) -> Result<Self> {
+        let shown = files.display_path(path);
+        let bytes = bytes::Bytes::from(files.read(path)?);
+        let reader = ParquetRecordBatchReaderBuilder::try_new(bytes)
             .and_then(|b| b.with_batch_size(64 * 1024).build())
-            .map_err(|e| DataError::parquet(path, e))?;
-        let batches = reader.collect::<std::result::Result<Vec<_>, _>>().map_err(|e| DataError::parquet(path, e))?;
-        Ok(Table { path: path.to_path_buf(), batches })
+            .map_err(|e| DataError::parquet(&shown, e))?;
+        let batches = reader.collect::<std::result::Result<Vec<_>, _>>().map_err(|e| DataError::parquet(&shown, e))?;
+        Ok(Table { path: shown, batches })
     }
 
     pub fn num_rows(&self) -> usize {

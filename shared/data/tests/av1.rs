@@ -9,7 +9,8 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use fedvla_data::video::{RgbImage, VideoFile};
+use fedvla_data::DirFiles;
+use fedvla_data::video::{FrameSource, Mp4Frames, RgbImage, VideoFile};
 
 const W: u32 = 96;
 const H: u32 = 64;
@@ -64,12 +65,13 @@ fn av1_frames_decode_within_codec_tolerance_by_timestamp() {
     let originals: Vec<RgbImage> = (0..FRAMES).map(frame).collect();
     encode_av1(&originals, &path);
 
-    let video = VideoFile::open(&path).unwrap();
+    let files = std::sync::Arc::new(DirFiles::new(path.parent().unwrap()));
+    let video = VideoFile::open(&*files, Path::new("camera.mp4")).unwrap();
     assert_eq!(video.frame_count(), FRAMES as usize);
     // Out of order and repeated, as a batch of delta_timestamps asks.
     let order = [7u32, 0, 11, 3, 3, 10];
     let timestamps: Vec<f64> = order.iter().map(|&i| f64::from(i) / f64::from(FPS)).collect();
-    let decoded = video.frames_at(&timestamps, 1e-4).unwrap();
+    let decoded = Mp4Frames::new(files).frames_at(Path::new("camera.mp4"), &timestamps, 1e-4).unwrap();
     for (&i, image) in order.iter().zip(&decoded) {
         assert_eq!((image.width, image.height), (W, H));
         let original = &originals[i as usize];
@@ -79,5 +81,5 @@ fn av1_frames_decode_within_codec_tolerance_by_timestamp() {
         assert!(mean_abs < 6.0, "frame {i}: mean absolute difference {mean_abs:.2} of 255");
         eprintln!("frame {i}: mean absolute difference {mean_abs:.2}/255");
     }
-    assert!(video.frames_at(&[1.0], 1e-4).is_err(), "a timestamp past the clip is refused");
+    assert!(video.samples_at(&[1.0], 1e-4).is_err(), "a timestamp past the clip is refused");
 }

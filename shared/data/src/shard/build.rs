@@ -1,15 +1,18 @@
-//! Building a client's shard from a dataset on disk (feature `io`).
+//! Packing a client's shard from a dataset, in memory (feature `read`), and writing it as a shard file with its
+//! sidecar manifest (feature `io`).
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
+#[cfg(feature = "io")]
 use std::path::Path;
 
 use safetensors::tensor::{Dtype, View};
+#[cfg(feature = "io")]
 use sha2::{Digest, Sha256};
 
-use super::format::{
-    MANIFEST_KEY, SHARD_FORMAT, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, content_hash, hex, sidecar_path,
-};
+use super::format::{MANIFEST_KEY, SHARD_FORMAT, ShardManifest, ShardSpec, Tokenizer, content_hash};
+#[cfg(feature = "io")]
+use super::format::{ShardFileManifest, hex, sidecar_path};
 use crate::error::{DataError, Result};
 use crate::partition::Partition;
 use crate::reader::{EpisodeMeta, LeRobotDataset};
@@ -50,6 +53,7 @@ fn i64_tensor(values: &[i64], shape: Vec<usize>) -> OwnedTensor {
 /// Builds client `client`'s shard of `partition` from `dataset` at `out` (a `.safetensors` path) and
 /// writes the sidecar manifest next to it. `tokenize` turns a task string into token ids. `on_episode`
 /// hears of every episode packed (decoding its videos is the slow part).
+#[cfg(feature = "io")]
 pub fn build_shard(
     dataset: &LeRobotDataset,
     partition: &Partition,
@@ -59,6 +63,36 @@ pub fn build_shard(
     out: &Path,
     on_episode: &mut dyn FnMut(&EpisodeMeta),
 ) -> Result<ShardFileManifest> {
+    let (manifest, bytes) =
+        pack_shard(dataset, partition, client, spec, tokenize, on_episode).map_err(|e| match e {
+            DataError::BadShard { reason, .. } => DataError::BadShard { path: out.to_path_buf(), reason },
+            other => other,
+        })?;
+    if let Some(dir) = out.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
+    }
+    fedvla_fs::write_atomic(out, &bytes).map_err(|e| DataError::io(out, e))?;
+    let file_manifest = ShardFileManifest {
+        file: out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
+        file_bytes: bytes.len() as u64,
+        file_sha256: hex(&Sha256::digest(&bytes)),
+        manifest,
+    };
+    crate::info::write_json(&sidecar_path(out), &file_manifest)?;
+    Ok(file_manifest)
+}
+
+/// Packs client `client`'s shard of `partition` from `dataset` in memory: its manifest and the shard's bytes
+/// (what [`crate::ClientShard::from_bytes`] reads). `tokenize` turns a task string into token ids. `on_episode`
+/// hears of every episode packed (decoding its videos is the slow part).
+pub fn pack_shard(
+    dataset: &LeRobotDataset,
+    partition: &Partition,
+    client: usize,
+    spec: &ShardSpec,
+    tokenize: Option<Tokenizer>,
+    on_episode: &mut dyn FnMut(&EpisodeMeta),
+) -> Result<(ShardManifest, Vec<u8>)> {
     let split = partition.clients.get(client).ok_or_else(|| {
         DataError::InvalidInput(format!(
             "client {client} is not in the partition ({} clients)",
@@ -190,17 +224,6 @@ pub fn build_shard(
         tensors.iter().map(|(n, t)| (n.as_str(), t)),
         Some(HashMap::from([(MANIFEST_KEY.to_string(), manifest_json)])),
     )
-    .map_err(|e| DataError::BadShard { path: out.to_path_buf(), reason: e.to_string() })?;
-    if let Some(dir) = out.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| DataError::io(dir, e))?;
-    }
-    fedvla_fs::write_atomic(out, &bytes).map_err(|e| DataError::io(out, e))?;
-    let file_manifest = ShardFileManifest {
-        file: out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
-        file_bytes: bytes.len() as u64,
-        file_sha256: hex(&Sha256::digest(&bytes)),
-        manifest,
-    };
-    crate::info::write_json(&sidecar_path(out), &file_manifest)?;
-    Ok(file_manifest)
+    .map_err(|e| DataError::BadShard { path: dataset.root().to_path_buf(), reason: e.to_string() })?;
+    Ok((manifest, bytes))
 }

@@ -12,7 +12,7 @@
 //! `task_tokens` i64 [T,L] and `task_attention_mask` u8 [T,L] (when a tokenizer was given);
 //! `stats/<feature>/<stat>` f32 [D] for `observation.state` and `action`.
 
-#[cfg(feature = "io")]
+#[cfg(feature = "read")]
 mod build;
 mod format;
 
@@ -26,6 +26,8 @@ use crate::error::{DataError, Result};
 
 #[cfg(feature = "io")]
 pub use build::build_shard;
+#[cfg(feature = "read")]
+pub use build::pack_shard;
 use format::{MANIFEST_KEY, content_hash, hex};
 pub use format::{SHARD_FORMAT, ShardFileManifest, ShardManifest, ShardSpec, Tokenizer, sidecar_path};
 

@@ -1,21 +1,36 @@
-//! Camera video: RGB frames, encoding a camera's episodes into one H.264 mp4, and decoding frames at
-//! given timestamps from H.264 or (feature `av1`) AV1 mp4 files.
+//! Camera video: RGB frames, encoding a camera's episodes into one H.264 mp4 (feature `io`), and frames at given
+//! timestamps through a [`FrameSource`]: decoded from H.264 or (feature `av1`) AV1 mp4 files natively
+//! ([`Mp4Frames`], feature `io`), or handed in already decoded ([`DecodedFrames`]: a browser page decodes with
+//! WebCodecs). Both find samples by time and plan which to decode the same way ([`VideoFile`]).
 
 #[cfg(feature = "av1")]
 mod av1;
+#[cfg(feature = "io")]
 mod color;
+#[cfg(feature = "io")]
 mod h264;
 pub mod mp4;
 
 use std::collections::BTreeMap;
-use std::fs::File;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use crate::error::{DataError, Result};
+use crate::files::DatasetFiles;
 pub use crate::image::RgbImage;
-use mp4::{Mp4Track, Mp4Writer, TrackCodec};
+use mp4::Mp4Track;
+#[cfg(feature = "io")]
+use mp4::{Mp4Writer, TrackCodec};
+
+/// Where a dataset's camera frames come from.
+pub trait FrameSource: Send + Sync {
+    /// The frames of video `path` (relative to the dataset's root) presented at `timestamps_s` (seconds from the
+    /// file's start, each within `tolerance_s` of a frame), in the given order.
+    fn frames_at(&self, path: &Path, timestamps_s: &[f64], tolerance_s: f64) -> Result<Vec<RgbImage>>;
+}
 
 /// How camera streams are encoded.
+#[cfg(feature = "io")]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct VideoEncoding {
     /// Upper bound of the H.264 quantiser (0 best .. 51 worst).
@@ -24,6 +39,7 @@ pub struct VideoEncoding {
     pub gop: u32,
 }
 
+#[cfg(feature = "io")]
 impl Default for VideoEncoding {
     fn default() -> Self {
         Self { qp_max: 22, gop: 10 }
@@ -31,11 +47,13 @@ impl Default for VideoEncoding {
 }
 
 /// Encodes one camera's frames into one mp4 file (many episodes back to back).
+#[cfg(feature = "io")]
 pub struct CameraVideoWriter {
     encoder: h264::H264Encoder,
     muxer: Mp4Writer,
 }
 
+#[cfg(feature = "io")]
 impl CameraVideoWriter {
     pub fn create(path: &Path, width: u32, height: u32, fps: u32, encoding: VideoEncoding) -> Result<Self> {
         if !width.is_multiple_of(2) || !height.is_multiple_of(2) || width == 0 || height == 0 {
@@ -75,12 +93,14 @@ impl CameraVideoWriter {
     }
 }
 
+#[cfg(feature = "io")]
 enum FrameDecoder {
     H264(h264::H264Decoder),
     #[cfg(feature = "av1")]
     Av1(av1::Av1Decoder),
 }
 
+#[cfg(feature = "io")]
 impl FrameDecoder {
     fn new(track: &Mp4Track) -> Result<Self> {
         match &track.codec {
@@ -108,7 +128,7 @@ impl FrameDecoder {
     }
 }
 
-/// Decodes frames of one mp4 file by presentation timestamp.
+/// One mp4 file's samples by presentation time, and which to decode to serve given timestamps.
 pub struct VideoFile {
     track: Mp4Track,
     /// Sample indices sorted by presentation time.
@@ -116,11 +136,16 @@ pub struct VideoFile {
 }
 
 impl VideoFile {
-    pub fn open(path: &Path) -> Result<Self> {
-        let track = Mp4Track::open(path)?;
+    /// Parses the sample tables of video `path` of `files`.
+    pub fn open(files: &dyn DatasetFiles, path: &Path) -> Result<Self> {
+        let track = Mp4Track::open(files, path)?;
         let mut by_time: Vec<usize> = (0..track.pts.len()).collect();
         by_time.sort_by_key(|&i| track.pts[i]);
         Ok(Self { track, by_time })
+    }
+
+    pub fn track(&self) -> &Mp4Track {
+        &self.track
     }
 
     pub fn path(&self) -> &Path {
@@ -147,65 +172,117 @@ impl VideoFile {
         }
     }
 
-    /// Decodes the frames presented at `timestamps_s` (seconds from the file start), in the given order.
-    /// Each run of requested frames is decoded forward from the last key frame before it; a decoder
-    /// already positioned before a requested frame (and past its key frame) just keeps going.
-    pub fn frames_at(&self, timestamps_s: &[f64], tolerance_s: f64) -> Result<Vec<RgbImage>> {
-        let wanted: Vec<usize> = timestamps_s.iter().map(|&t| self.sample_at(t, tolerance_s)).collect::<Result<_>>()?;
-        let mut targets = wanted.clone();
+    /// The samples presented at `timestamps_s`, in the given order.
+    pub fn samples_at(&self, timestamps_s: &[f64], tolerance_s: f64) -> Result<Vec<usize>> {
+        timestamps_s.iter().map(|&t| self.sample_at(t, tolerance_s)).collect()
+    }
+
+    /// The runs of samples (in decode order) to decode for the pictures of `samples`: each starts at the last key
+    /// frame before a wanted sample, and a run already past that key frame just keeps going to the next one.
+    pub fn decode_runs(&self, samples: &[usize]) -> Vec<Range<usize>> {
+        let mut targets = samples.to_vec();
         targets.sort_unstable();
         targets.dedup();
-        let path = self.track.path.clone();
-        let mut file = File::open(&path).map_err(|e| DataError::io(&path, e))?;
-        let mut decoded: BTreeMap<usize, RgbImage> = BTreeMap::new();
-        // The decoder, the next sample it would take, and the samples whose pictures it still owes.
-        let mut state: Option<(FrameDecoder, usize, std::collections::VecDeque<usize>)> = None;
-        for &target in &targets {
-            let key = (0..=target).rev().find(|&i| self.track.is_sync[i]).unwrap_or(0);
-            let keep = matches!(&state, Some((_, next, _)) if *next <= target && *next > key);
-            if !keep {
-                state = Some((FrameDecoder::new(&self.track)?, key, std::collections::VecDeque::new()));
+        let mut runs: Vec<Range<usize>> = Vec::new();
+        for target in targets {
+            let key = (0..=target).rev().find(|&i| self.track.is_sync.get(i) == Some(&true)).unwrap_or(0);
+            match runs.last_mut() {
+                Some(run) if run.end > key => run.end = target + 1,
+                _ => runs.push(key..target + 1),
             }
-            let Some((decoder, next, owed)) = state.as_mut() else { break };
-            while *next <= target {
-                let bytes = self.track.read_sample(&mut file, *next)?;
-                owed.push_back(*next);
-                *next += 1;
-                // Pictures come out in decode order, one per sample; the decoder may hold some back.
-                if let Some(image) = decoder.decode(&path, &bytes)?
+        }
+        runs
+    }
+}
+
+/// Frames decoded natively from a dataset's mp4 files, each file's sample tables parsed once.
+#[cfg(feature = "io")]
+pub struct Mp4Frames {
+    files: std::sync::Arc<dyn DatasetFiles>,
+    opened: std::sync::Mutex<BTreeMap<PathBuf, std::sync::Arc<VideoFile>>>,
+}
+
+#[cfg(feature = "io")]
+impl Mp4Frames {
+    pub fn new(files: std::sync::Arc<dyn DatasetFiles>) -> Self {
+        Self { files, opened: std::sync::Mutex::default() }
+    }
+
+    fn video(&self, path: &Path) -> Result<std::sync::Arc<VideoFile>> {
+        let mut opened = self.opened.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(video) = opened.get(path) {
+            return Ok(video.clone());
+        }
+        let video = std::sync::Arc::new(VideoFile::open(&*self.files, path)?);
+        opened.insert(path.to_path_buf(), video.clone());
+        Ok(video)
+    }
+}
+
+#[cfg(feature = "io")]
+impl FrameSource for Mp4Frames {
+    /// Each run of [`VideoFile::decode_runs`] is decoded forward from its key frame by a fresh decoder.
+    fn frames_at(&self, path: &Path, timestamps_s: &[f64], tolerance_s: f64) -> Result<Vec<RgbImage>> {
+        let video = self.video(path)?;
+        let wanted = video.samples_at(timestamps_s, tolerance_s)?;
+        let mut decoded: BTreeMap<usize, RgbImage> = BTreeMap::new();
+        for run in video.decode_runs(&wanted) {
+            let mut decoder = FrameDecoder::new(&video.track)?;
+            // The samples whose pictures the decoder still owes: pictures come out in decode order, one per
+            // sample, and the decoder may hold some back.
+            let mut owed = std::collections::VecDeque::new();
+            for sample in run {
+                let bytes = video.track.read_sample(&*self.files, sample)?;
+                owed.push_back(sample);
+                if let Some(image) = decoder.decode(video.path(), &bytes)?
                     && let Some(sample) = owed.pop_front()
-                    && targets.binary_search(&sample).is_ok()
+                    && wanted.contains(&sample)
                 {
                     decoded.insert(sample, image);
                 }
             }
         }
-        wanted
-            .iter()
-            .map(|s| {
-                decoded.get(s).cloned().ok_or_else(|| DataError::Decode {
-                    path: path.clone(),
-                    reason: format!("sample {s} produced no picture"),
-                })
-            })
-            .collect()
+        pictures_of(video.path(), &wanted, &decoded)
     }
 }
 
-/// Opened video files, by path, so that repeated frame reads skip re-parsing the sample tables.
+/// Frames a caller decoded (a browser page, with WebCodecs), by video file and sample: what it was asked to
+/// decode by [`VideoFile::decode_runs`] of the samples [`VideoFile::samples_at`] names.
 #[derive(Default)]
-pub struct VideoCache {
-    files: std::sync::Mutex<BTreeMap<PathBuf, std::sync::Arc<VideoFile>>>,
+pub struct DecodedFrames {
+    videos: BTreeMap<PathBuf, (VideoFile, BTreeMap<usize, RgbImage>)>,
 }
 
-impl VideoCache {
-    pub fn get(&self, path: &Path) -> Result<std::sync::Arc<VideoFile>> {
-        let mut files = self.files.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some(f) = files.get(path) {
-            return Ok(f.clone());
-        }
-        let file = std::sync::Arc::new(VideoFile::open(path)?);
-        files.insert(path.to_path_buf(), file.clone());
-        Ok(file)
+impl DecodedFrames {
+    /// Adds the pictures of `samples` of `video`, file `path` of the dataset.
+    pub fn insert(&mut self, path: &Path, video: VideoFile, pictures: BTreeMap<usize, RgbImage>) {
+        self.videos.insert(path.to_path_buf(), (video, pictures));
     }
+
+    /// Bytes the pictures hold.
+    pub fn bytes(&self) -> usize {
+        self.videos.values().flat_map(|(_, pictures)| pictures.values()).map(|p| p.data.len()).sum()
+    }
+}
+
+impl FrameSource for DecodedFrames {
+    fn frames_at(&self, path: &Path, timestamps_s: &[f64], tolerance_s: f64) -> Result<Vec<RgbImage>> {
+        let (video, pictures) = self.videos.get(path).ok_or_else(|| {
+            DataError::InvalidInput(format!("{}: no frames of this video were decoded", path.display()))
+        })?;
+        pictures_of(video.path(), &video.samples_at(timestamps_s, tolerance_s)?, pictures)
+    }
+}
+
+/// The pictures of `samples`, in order, from `decoded`: an error naming the first one missing.
+fn pictures_of(path: &Path, samples: &[usize], decoded: &BTreeMap<usize, RgbImage>) -> Result<Vec<RgbImage>> {
+    samples
+        .iter()
+        .map(|s| {
+            decoded.get(s).cloned().ok_or_else(|| DataError::Decode {
+                path: path.to_path_buf(),
+                reason: format!("sample {s} produced no picture"),
+            })
+        })
+        .collect()
 }

@@ -6,21 +6,27 @@
 //! Reading parses only the sample tables needed to find and fetch samples (stts, ctts, stsz, stsc,
 //! stco/co64, stss) and the codec configuration (avcC for H.264, av1C for AV1).
 
+#[cfg(feature = "io")]
 use std::fs::File;
+#[cfg(feature = "io")]
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::{DataError, Result};
+use crate::files::DatasetFiles;
 
+#[cfg(feature = "io")]
 /// Ticks per frame; the track timescale is `fps * TICKS_PER_FRAME` so every frame time is exact.
 const TICKS_PER_FRAME: u32 = 512;
 
+#[cfg(feature = "io")]
 /// H.264 parameter sets that go into the `avcC` box.
 pub struct AvcParameterSets {
     pub sps: Vec<u8>,
     pub pps: Vec<u8>,
 }
 
+#[cfg(feature = "io")]
 /// Streams one H.264 track into an mp4 file.
 pub struct Mp4Writer {
     path: PathBuf,
@@ -36,6 +42,7 @@ pub struct Mp4Writer {
     parameter_sets: Option<AvcParameterSets>,
 }
 
+#[cfg(feature = "io")]
 impl Mp4Writer {
     pub fn create(path: &Path, width: u16, height: u16, fps: u32) -> Result<Self> {
         if let Some(dir) = path.parent() {
@@ -224,14 +231,17 @@ impl Mp4Writer {
     }
 }
 
+#[cfg(feature = "io")]
 const UNITY_MATRIX: [u32; 9] = [0x0001_0000, 0, 0, 0, 0x0001_0000, 0, 0, 0, 0x4000_0000];
 
+#[cfg(feature = "io")]
 fn put_u32s(b: &mut Vec<u8>, values: &[u32]) {
     for v in values {
         b.extend_from_slice(&v.to_be_bytes());
     }
 }
 
+#[cfg(feature = "io")]
 fn write_box(out: &mut Vec<u8>, kind: &[u8; 4], body: impl FnOnce(&mut Vec<u8>)) {
     let start = out.len();
     out.extend_from_slice(&[0; 4]);
@@ -241,6 +251,7 @@ fn write_box(out: &mut Vec<u8>, kind: &[u8; 4], body: impl FnOnce(&mut Vec<u8>))
     out[start..start + 4].copy_from_slice(&size.to_be_bytes());
 }
 
+#[cfg(feature = "io")]
 fn write_full_box(out: &mut Vec<u8>, kind: &[u8; 4], version: u8, flags: u32, body: impl FnOnce(&mut Vec<u8>)) {
     write_box(out, kind, |b| {
         b.extend_from_slice(&((u32::from(version) << 24) | (flags & 0x00FF_FFFF)).to_be_bytes());
@@ -264,10 +275,47 @@ pub enum TrackCodec {
     },
 }
 
+impl TrackCodec {
+    /// The codec string (RFC 6381) a browser's WebCodecs `VideoDecoder` is configured with, e.g. `avc1.42C01E` or
+    /// `av01.0.04M.08`; `None` for a codec this crate does not know, or a configuration too short to name it.
+    pub fn codec_string(&self) -> Option<String> {
+        match self {
+            TrackCodec::H264 { avcc } => {
+                let profile = avcc.get(1..4)?;
+                Some(format!("avc1.{:02X}{:02X}{:02X}", profile[0], profile[1], profile[2]))
+            }
+            TrackCodec::Av1 { av1c } => {
+                let (b1, b2) = (*av1c.get(1)?, *av1c.get(2)?);
+                let (profile, level) = (b1 >> 5, b1 & 0x1F);
+                let tier = if b2 & 0x80 != 0 { 'H' } else { 'M' };
+                let depth = match (b2 & 0x40 != 0, b2 & 0x20 != 0) {
+                    (true, true) => 12,
+                    (true, false) => 10,
+                    _ => 8,
+                };
+                Some(format!("av01.{profile}.{level:02}{tier}.{depth:02}"))
+            }
+            TrackCodec::Other { .. } => None,
+        }
+    }
+
+    /// The decoder configuration record (`avcC` or `av1C` contents): WebCodecs' `description`.
+    pub fn configuration(&self) -> &[u8] {
+        match self {
+            TrackCodec::H264 { avcc } => avcc,
+            TrackCodec::Av1 { av1c } => av1c,
+            TrackCodec::Other { .. } => &[],
+        }
+    }
+}
+
 /// The sample table of the first video track of an mp4 file.
 #[derive(Debug, Clone)]
 pub struct Mp4Track {
+    /// The file as messages name it.
     pub path: PathBuf,
+    /// The file as its dataset's files name it (relative to the root).
+    pub file: PathBuf,
     pub codec: TrackCodec,
     pub width: u32,
     pub height: u32,
@@ -281,52 +329,50 @@ pub struct Mp4Track {
 }
 
 impl Mp4Track {
-    /// Finds and parses the moov box of `path`, reading only box headers and moov itself.
-    pub fn open(path: &Path) -> Result<Self> {
-        use std::io::Read;
-        let mut file = File::open(path).map_err(|e| DataError::io(path, e))?;
-        let len = file.metadata().map_err(|e| DataError::io(path, e))?.len();
+    /// Finds and parses the moov box of video `path` of `files`, reading only box headers and moov itself.
+    pub fn open(files: &dyn DatasetFiles, path: &Path) -> Result<Self> {
+        let shown = files.display_path(path);
+        let len = files.size(path)?;
         let mut pos = 0u64;
         while pos + 8 <= len {
-            let mut header = [0u8; 16];
-            file.seek(SeekFrom::Start(pos)).map_err(|e| DataError::io(path, e))?;
-            file.read_exact(&mut header[..8]).map_err(|e| DataError::io(path, e))?;
+            let header = files.read_range(path, pos, (len - pos).min(16) as usize)?;
             let size32 = u32::from_be_bytes([header[0], header[1], header[2], header[3]]);
             let (size, header_len) = match size32 {
                 0 => (len - pos, 8),
                 1 => {
-                    file.read_exact(&mut header[8..16]).map_err(|_| DataError::mp4(path, "truncated box header"))?;
+                    let wide = header.get(8..16).ok_or_else(|| DataError::mp4(&shown, "truncated box header"))?;
                     let mut b = [0; 8];
-                    b.copy_from_slice(&header[8..16]);
+                    b.copy_from_slice(wide);
                     (u64::from_be_bytes(b), 16)
                 }
                 s => (u64::from(s), 8),
             };
             if size < header_len || pos + size > len {
-                return Err(DataError::mp4(path, "a top-level box runs past the end of the file (truncated?)"));
+                return Err(DataError::mp4(&shown, "a top-level box runs past the end of the file (truncated?)"));
             }
             if &header[4..8] == b"moov" {
-                let mut moov = vec![0; (size - header_len) as usize];
-                file.read_exact(&mut moov).map_err(|e| DataError::io(path, e))?;
-                return parse_moov(path, &moov);
+                let moov = files.read_range(path, pos + header_len, (size - header_len) as usize)?;
+                return parse_moov(&shown, path, &moov);
             }
             pos += size;
         }
-        Err(DataError::mp4(path, "no moov box"))
+        Err(DataError::mp4(&shown, "no moov box"))
     }
 
     pub fn sample_time_s(&self, sample: usize) -> f64 {
         self.pts[sample] as f64 / f64::from(self.timescale)
     }
 
-    /// Reads sample `i`'s bytes from `file`.
-    pub fn read_sample(&self, file: &mut File, i: usize) -> Result<Vec<u8>> {
-        use std::io::Read;
-        let mut buf = vec![0; self.sizes[i] as usize];
-        file.seek(SeekFrom::Start(self.offsets[i])).map_err(|e| DataError::io(&self.path, e))?;
-        file.read_exact(&mut buf)
-            .map_err(|_| DataError::mp4(&self.path, format!("sample {i} lies past the end of the file")))?;
-        Ok(buf)
+    /// Reads sample `i`'s bytes from `files`.
+    pub fn read_sample(&self, files: &dyn DatasetFiles, i: usize) -> Result<Vec<u8>> {
+        let (offset, size) = self
+            .offsets
+            .get(i)
+            .zip(self.sizes.get(i))
+            .ok_or_else(|| DataError::mp4(&self.path, format!("no sample {i}")))?;
+        files
+            .read_range(&self.file, *offset, *size as usize)
+            .map_err(|_| DataError::mp4(&self.path, format!("sample {i} lies past the end of the file")))
     }
 }
 
@@ -401,7 +447,7 @@ fn optional_child<'a>(path: &Path, parent: &'a [u8], kind: &[u8; 4]) -> Result<O
     Ok(boxes(path, parent)?.into_iter().find(|(k, _)| k == kind).map(|(_, b)| b))
 }
 
-fn parse_moov(path: &Path, moov: &[u8]) -> Result<Mp4Track> {
+fn parse_moov(path: &Path, file: &Path, moov: &[u8]) -> Result<Mp4Track> {
     for (kind, trak) in boxes(path, moov)? {
         if &kind != b"trak" {
             continue;
@@ -411,12 +457,12 @@ fn parse_moov(path: &Path, moov: &[u8]) -> Result<Mp4Track> {
         if hdlr.get(8..12) != Some(b"vide") {
             continue;
         }
-        return parse_video_trak(path, mdia);
+        return parse_video_trak(path, file, mdia);
     }
     Err(DataError::mp4(path, "no video track"))
 }
 
-fn parse_video_trak(path: &Path, mdia: &[u8]) -> Result<Mp4Track> {
+fn parse_video_trak(path: &Path, file: &Path, mdia: &[u8]) -> Result<Mp4Track> {
     let mdhd = child(path, mdia, b"mdhd")?;
     let mut r = Reader { path, data: mdhd, pos: 0 };
     let version = r.u8("mdhd")?;
@@ -543,5 +589,16 @@ fn parse_video_trak(path: &Path, mdia: &[u8]) -> Result<Mp4Track> {
             flags
         }
     };
-    Ok(Mp4Track { path: path.to_path_buf(), codec, width, height, timescale, pts, offsets, sizes, is_sync })
+    Ok(Mp4Track {
+        path: path.to_path_buf(),
+        file: file.to_path_buf(),
+        codec,
+        width,
+        height,
+        timescale,
+        pts,
+        offsets,
+        sizes,
+        is_sync,
+    })
 }

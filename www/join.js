@@ -1,7 +1,8 @@
 // The join page: consent, the Join button, the volunteer's key (a random seed kept in IndexedDB, one per name),
-// live status drawn from the wasm volunteer's reports, and automatic reconnection (with the cached downloads, a
-// reconnect costs only the WebSocket handshake).
+// an optional own dataset folder (www/dataset.js), live status drawn from the wasm volunteer's reports, and
+// automatic reconnection (with the cached downloads, a reconnect costs only the WebSocket handshake).
 import init, { run_volunteer } from "./pkg/fedvla_client_wasm.js";
+import { folderFromInput, pickFolder } from "./dataset.js";
 
 const $ = (id) => document.getElementById(id);
 const RECONNECT_MIN_MS = 1000;
@@ -59,13 +60,29 @@ function volunteerSeed(name) {
 
 const fmtBytes = (n) => n >= 1 << 20 ? (n / (1 << 20)).toFixed(1) + " MiB" : n >= 1024 ? (n / 1024).toFixed(1) + " KiB" : n + " B";
 
-const state = { contributions: 0, up: 0, down: 0, gpu: "", reconnectDelay: RECONNECT_MIN_MS };
+const state = { contributions: 0, up: 0, down: 0, gpu: "", reconnectDelay: RECONNECT_MIN_MS, dataset: null };
 
 function show(kind, s) {
   switch (kind) {
     case "identity": $("public-key").textContent = s.public_key; break;
     case "stage": $("stage").textContent = s.stage; break;
-    case "setup": $("stage").textContent = `assigned shard ${s.shard} of ${s.shards}`; break;
+    case "setup":
+      $("stage").textContent = s.own_dataset ? "training on your own dataset" : `assigned shard ${s.shard} of ${s.shards}`;
+      break;
+    case "dataset_read":
+      {
+        $("dataset-status").hidden = false;
+        const item = document.createElement("li");
+        item.textContent = `${s.path}: ${fmtBytes(s.bytes)}`;
+        $("dataset-reads").append(item);
+      }
+      break;
+    case "dataset_plan":
+      $("dataset-plan").textContent = `training on ${s.episodes} of ${s.of} episodes (${s.frames} frames, ` +
+        `${fmtBytes(s.bytes)} of examples in memory, within the ${fmtBytes(s.budget_bytes)} budget)`;
+      break;
+    case "dataset_decoded": $("stage").textContent = `decoded ${s.frames} frames of ${s.path}`; break;
+    case "dataset_packed": $("stage").textContent = `your dataset: ${s.train_examples} training examples built in memory`; break;
     case "download":
       $("stage").textContent = `downloading ${s.what}`;
       $("progress").max = s.total || 1;
@@ -130,10 +147,12 @@ async function volunteer() {
     $("message").textContent = "";
     $("message").className = "";
     try {
+      // Each connection reads the folder afresh: the page keeps none of it between them.
+      $("dataset-reads").replaceChildren();
       await run_volunteer(location.origin, name, seed, $("rollout"), maxBuffer, (json) => {
         const status = JSON.parse(json);
         show(status.kind, status);
-      });
+      }, state.dataset);
       $("connection").textContent = "run finished; thank you";
       return;
     } catch (e) {
@@ -148,9 +167,18 @@ async function volunteer() {
   }
 }
 
+function chooseDataset(folder) {
+  state.dataset = folder;
+  $("dataset-choice").textContent = folder
+    ? `Chosen: ${folder.name} (${folder.paths.length} files listed, none read yet); you train on it instead of a shard.`
+    : "No folder chosen: you train on a shard the server sends.";
+}
+
 function join() {
   $("join").disabled = true;
   $("consent").disabled = true;
+  $("pick-dataset").disabled = true;
+  $("dataset-input").disabled = true;
   localStorage.setItem("fedvla-consent", "given");
   volunteer();
 }
@@ -158,6 +186,19 @@ function join() {
 $("volunteer-name").textContent = "as " + volunteerName();
 $("consent").addEventListener("change", () => { $("join").disabled = !$("consent").checked; });
 $("join").addEventListener("click", join);
+$("dataset-input").addEventListener("change", () => chooseDataset(folderFromInput($("dataset-input").files)));
+if (window.showDirectoryPicker) {
+  $("pick-dataset").hidden = false;
+  $("dataset-input-label").textContent = "or with the file dialog:";
+  $("pick-dataset").addEventListener("click", async () => {
+    try {
+      chooseDataset(await pickFolder());
+    } catch (e) {
+      // Closing the picker is a choice, not an error.
+      if (e.name !== "AbortError") $("dataset-choice").textContent = `could not open the folder: ${e}`;
+    }
+  });
+}
 // A volunteer who already agreed rejoins by itself after a reload.
 if (localStorage.getItem("fedvla-consent") === "given") {
   $("consent").checked = true;

@@ -1,18 +1,18 @@
 //! `run_volunteer`, the page's entry point: prove the volunteer's key over the WebSocket (the page keeps its seed
 //! in IndexedDB), download what the admission offers with its session (cached by version), build the SmolVLA
-//! trainer, join and run the shared round loop until the run finishes or the connection drops (the page then
-//! reconnects).
+//! trainer on the shard the server assigns or on the volunteer's own dataset folder ([`crate::own_dataset`]), join
+//! and run the shared round loop until the run finishes or the connection drops (the page then reconnects).
 
 use burn::tensor::Device;
 use fedvla_federation::identity::SEED_BYTES;
 use fedvla_federation::{
     Admission, BoxError, Capabilities, ClientEvent, ClientOptions, EvalOutput, Identity, Introduction, LocalTrainer,
-    NamedTensors, RolloutOutput, RolloutRequest, RoundTask, TrainOutput, identify, run_client,
+    NamedTensors, OwnDataset, RolloutOutput, RolloutRequest, RoundTask, TrainOutput, identify, run_client,
 };
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_learner::rollout::Episode;
 use fedvla_learner::trainer::rollout_episode;
-use fedvla_learner::volunteer::{Fetch, policy_config, smolvla_volunteer};
+use fedvla_learner::volunteer::{Fetch, policy_config, smolvla_volunteer, smolvla_volunteer_on};
 use serde_json::json;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
@@ -20,6 +20,7 @@ use web_sys::HtmlCanvasElement;
 use crate::browser::{js_error, now_seconds, sleep_ms, yield_to_page};
 use crate::download::{Source, cached, fetch_with_progress};
 use crate::film::{CanvasView, Recorder};
+use crate::own_dataset::{PickedFolder, pack_picked_folder};
 use crate::status::StatusSink;
 use crate::transport::BrowserTransport;
 
@@ -75,8 +76,9 @@ fn boxed(e: JsValue) -> BoxError {
 /// Joins the federation served at `origin` as `name` with the key pair of the 32-byte `seed` (the page keeps it in
 /// IndexedDB), drawing rollouts on `canvas` and reporting every change to `on_status` (one JSON string per
 /// call). `max_buffer_bytes` is the WebGPU adapter's `maxStorageBufferBindingSize` (0 when the page found no
-/// adapter). Resolves with the run's summary when the server finishes the run; rejects with a message when
-/// anything fails (the page shows it and reconnects).
+/// adapter). `dataset` is the volunteer's own LeRobot dataset folder as www/dataset.js gives it (`{name, paths,
+/// sizes, read, decode}`), or null to train on the shard the server assigns. Resolves with the run's summary when
+/// the server finishes the run; rejects with a message when anything fails (the page shows it and reconnects).
 #[wasm_bindgen]
 pub async fn run_volunteer(
     origin: String,
@@ -85,6 +87,7 @@ pub async fn run_volunteer(
     canvas: HtmlCanvasElement,
     max_buffer_bytes: f64,
     on_status: js_sys::Function,
+    dataset: JsValue,
 ) -> Result<JsValue, JsValue> {
     let status = StatusSink::new(on_status);
     let started = now_seconds();
@@ -94,12 +97,18 @@ pub async fn run_volunteer(
     status.send("identity", json!({ "public_key": identity.public_key_hex() }));
     let mut transport = BrowserTransport::connect(&origin).map_err(|e| js_error(format!("{e}")))?;
     status.send("stage", json!({ "stage": "identifying" }));
-    let intro = Introduction { name, auth_token: None, shard: None, own_dataset: false };
+    let folder = if dataset.is_null() || dataset.is_undefined() {
+        None
+    } else {
+        Some(PickedFolder::from_js(&dataset).map_err(|e| js_error(format!("{e}")))?)
+    };
+    let intro = Introduction { name, auth_token: None, shard: None, own_dataset: folder.is_some() };
     let admission = identify(&mut transport, &identity, &intro).await.map_err(|e| js_error(format!("{e}")))?;
-    let mut trainer = prepare(&origin, &intro.name, &admission, canvas, max_buffer_bytes, started, &status)
-        .await
-        .map_err(|e| js_error(format!("{e}")))?;
-    let data = Some(trainer.inner.examples().data_report(None));
+    let (mut trainer, own) =
+        prepare(&origin, &intro.name, &admission, folder.as_ref(), canvas, max_buffer_bytes, started, &status)
+            .await
+            .map_err(|e| js_error(format!("{e}")))?;
+    let data = Some(trainer.inner.examples().data_report(own));
     let options = ClientOptions { session: admission.session, data };
     let sink = status.clone();
     let summary = run_client(&mut transport, &mut trainer, &options, move |event| report(&sink, event))
@@ -115,30 +124,43 @@ pub async fn run_volunteer(
     Ok(JsValue::from_str(&summary.to_string()))
 }
 
-/// Downloads the frozen weights, the shard and the global model the admission's setup names, with its session,
-/// and builds the trainer (the shared start-up, over the page's fetch).
+/// Downloads the frozen weights, the shard (or, with the volunteer's own `folder`, the run's tokenizer to pack it
+/// with) and the global model the admission's setup names, with its session, and builds the trainer (the shared
+/// start-up, over the page's fetch). With a folder, also what the server is told of it.
+#[allow(clippy::too_many_arguments)]
 async fn prepare(
     origin: &str,
     name: &str,
     admission: &Admission,
+    folder: Option<&PickedFolder>,
     canvas: HtmlCanvasElement,
     max_buffer_bytes: f64,
     started: f64,
     status: &StatusSink,
-) -> Result<BrowserTrainer, BoxError> {
+) -> Result<(BrowserTrainer, Option<OwnDataset>), BoxError> {
     let (setup, session) = (&admission.setup, admission.session.as_str());
     let fetch = PageFetch { origin, session, status };
     // The key keeps a returning volunteer on its shard (and so on its cached copy of it).
     status.send(
         "setup",
-        json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version }),
+        json!({ "shard": setup.shard_index, "shards": setup.shard_count, "model_version": setup.model_version,
+                "own_dataset": folder.is_some() }),
     );
     let largest_tensor = policy_config(setup)?.param_specs().iter().map(|p| p.numel() * 4).max().unwrap_or(0);
     let (device, backend) = training_device(status, max_buffer_bytes, largest_tensor).await;
     status.send("device", json!({ "backend": backend }));
-    let inner = smolvla_volunteer(&fetch, setup, name, &device, &backend).await?;
+    let (inner, own) = match folder {
+        None => (smolvla_volunteer(&fetch, setup, name, &device, &backend).await?, None),
+        Some(folder) => {
+            let packed = pack_picked_folder(folder, &fetch, setup, name, status).await?;
+            let inner = smolvla_volunteer_on(&fetch, setup, name, packed.shard, &device, &backend).await?;
+            let train_examples = inner.examples().train_examples();
+            status.send("dataset_packed", json!({ "train_examples": train_examples }));
+            (inner, Some(OwnDataset { signature: packed.signature, train_examples }))
+        }
+    };
     let view = CanvasView::new(canvas, ROLLOUT_VIEW_SIZE).map_err(boxed)?;
-    Ok(BrowserTrainer { inner, status: status.clone(), view, started, first_step_reported: false })
+    Ok((BrowserTrainer { inner, status: status.clone(), view, started, first_step_reported: false }, own))
 }
 
 /// Downloads from the page's server with the admission's session, with progress on the page, kept in the Cache

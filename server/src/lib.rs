@@ -8,5 +8,4 @@ pub mod attack;
 pub mod experiment;
 pub mod loadtest;
 pub mod native_client;
-pub mod own_dataset;
 pub mod runs;

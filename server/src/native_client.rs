@@ -17,6 +17,7 @@ use fedvla_federation::{
     LocalTrainer, OwnDataset, Video, WorkloadKind, fnv1a, identify, routes, run_client,
 };
 use fedvla_learner::feature_cache::DEFAULT_SPILL_BYTES;
+use fedvla_learner::own_data::{OwnShard, check_fits_run, pack_own_dataset};
 use fedvla_learner::volunteer::{
     Fetch, fetch_tokenizer, policy_config, smolvla_volunteer, smolvla_volunteer_on, volunteer_seed,
 };
@@ -24,7 +25,6 @@ use fedvla_workloads::linreg::LinRegTrainer;
 use fedvla_workloads::sim_eval::FilmedRollouts;
 
 use crate::attack::{Attack, Attacker};
-use crate::own_dataset::pack_own_dataset;
 use futures_util::{SinkExt, StreamExt};
 use http_body_util::{BodyExt, Full};
 use hyper::body::Bytes;
@@ -283,7 +283,7 @@ pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> R
                     let run = setup.dataset_signature.as_ref().ok_or("the server takes no own datasets")?;
                     let tokenizer = fetch_tokenizer(&transport, &setup).await?;
                     let cfg = policy_config(&setup)?;
-                    let packed = pack_own_dataset(root, run, &cfg, &tokenizer, volunteer_seed(name))?;
+                    let packed = pack_own_directory(root, run, &cfg, &tokenizer, volunteer_seed(name))?;
                     let trainer =
                         smolvla_volunteer_on(&transport, &setup, name, packed.shard, &device, "cpu-flex").await?;
                     let train_examples = trainer.examples().train_examples();
@@ -301,6 +301,24 @@ pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> R
             run_as(&mut transport, FilmedRollouts(trainer), attack, &options, on_event).await
         }
     }
+}
+
+/// The LeRobot dataset at `root` packed for the run (see [`fedvla_learner::own_data`]): every episode, read where it
+/// lies, refused before anything is decoded when it does not fit the run's signature `run`.
+fn pack_own_directory(
+    root: &Path,
+    run: &fedvla_federation::DatasetSignature,
+    cfg: &fedvla_policy::SmolVlaConfig,
+    tokenizer: &fedvla_policy::Tokenizer,
+    seed: u64,
+) -> Result<OwnShard, BoxError> {
+    let named = |e: &dyn std::fmt::Display| format!("own dataset {}: {e}", root.display());
+    let dataset = fedvla_data::LeRobotDataset::open(root).map_err(|e| named(&e))?;
+    let signature = check_fits_run(dataset.info(), run).map_err(|e| named(&e))?;
+    let episodes: Vec<usize> = dataset.episodes().iter().map(|e| e.episode_index).collect();
+    pack_own_dataset(&dataset, &episodes, signature, cfg, tokenizer, seed, &mut |episode| {
+        tracing::debug!(episode = episode.episode_index, "own episode packed");
+    })
 }
 
 /// Where native volunteers spill their frozen-feature caches: `$XDG_CACHE_HOME/fedvla/features`, or

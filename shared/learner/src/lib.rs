@@ -6,6 +6,7 @@ pub mod evaluator;
 pub mod examples;
 pub mod feature_cache;
 pub mod heldout;
+pub mod own_data;
 pub mod rollout;
 pub mod tensors;
 pub mod trainer;

@@ -258,11 +258,6 @@ impl DecodedFrames {
     pub fn insert(&mut self, path: &Path, video: VideoFile, pictures: BTreeMap<usize, RgbImage>) {
         self.videos.insert(path.to_path_buf(), (video, pictures));
     }
-
-    /// Bytes the pictures hold.
-    pub fn bytes(&self) -> usize {
-        self.videos.values().flat_map(|(_, pictures)| pictures.values()).map(|p| p.data.len()).sum()
-    }
 }
 
 impl FrameSource for DecodedFrames {

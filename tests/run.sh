@@ -11,7 +11,7 @@ source tests/native-env.sh
 
 # One style, checked first because it is instant; then the lints.
 cargo fmt --check
-cargo clippy --workspace --locked --features fedvla-server/av1 -- -D warnings
+cargo clippy --workspace --locked --features fedvla-server/av1,fedvla-server/gpu -- -D warnings
 # The wasm volunteer into www/pkg, which the server serves and the browser tests load.
 bash client-wasm/build.sh
 # The wasm units (codec, sim, SmolVLA training on the CPU backend and on WebGPU) in a real Chromium.

@@ -9,8 +9,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use burn::tensor::Device;
-use fedvla_aggregator::config::{AttackKind, Partitioning};
+use fedvla_aggregator::config::{AttackKind, ComputeDevice, Partitioning};
 use fedvla_federation::identity::SEED_BYTES;
 use fedvla_federation::{
     Admission, BoxError, ClientEvent, ClientOptions, ClientSummary, ClientTransport, Identity, Introduction,
@@ -21,6 +20,7 @@ use fedvla_learner::own_data::{OwnShard, check_fits_run, pack_own_dataset};
 use fedvla_learner::volunteer::{
     Fetch, fetch_tokenizer, policy_config, smolvla_volunteer, smolvla_volunteer_on, volunteer_seed,
 };
+use fedvla_workloads::device::training_device;
 use fedvla_workloads::linreg::LinRegTrainer;
 use fedvla_workloads::sim_eval::FilmedRollouts;
 
@@ -234,13 +234,15 @@ pub struct Volunteer<'a> {
     pub auth_token: Option<String>,
     /// Corrupts its updates (simulations only).
     pub attack: Option<Attack>,
+    /// Where its training steps run.
+    pub device: ComputeDevice,
 }
 
 /// `v` until the run finishes: proves its key and is admitted with its setup, builds the trainer the server's
 /// workload needs from what it downloads with the admission's session (and, with its own dataset, from that),
 /// and runs the shared round loop, reporting to `on_event`.
 pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> Result<ClientSummary, BoxError> {
-    let Volunteer { server, ca_cert, name, identity, data, auth_token, attack } = v;
+    let Volunteer { server, ca_cert, name, identity, data, auth_token, attack, device } = v;
     let intro = Introduction {
         name: name.to_owned(),
         auth_token,
@@ -274,18 +276,17 @@ pub async fn volunteer(v: Volunteer<'_>, on_event: impl FnMut(ClientEvent)) -> R
             run_as(&mut transport, trainer, attack, &options, on_event).await
         }
         WorkloadKind::Smolvla => {
-            let device = Device::flex().autodiff();
+            let (device, backend) = training_device(device)?;
+            tracing::info!(backend, "training device");
             let (trainer, own) = match data {
-                VolunteerData::Shard(_) => {
-                    (smolvla_volunteer(&transport, &setup, name, &device, "cpu-flex").await?, None)
-                }
+                VolunteerData::Shard(_) => (smolvla_volunteer(&transport, &setup, name, &device, backend).await?, None),
                 VolunteerData::Own(root) => {
                     let run = setup.dataset_signature.as_ref().ok_or("the server takes no own datasets")?;
                     let tokenizer = fetch_tokenizer(&transport, &setup).await?;
                     let cfg = policy_config(&setup)?;
                     let packed = pack_own_directory(root, run, &cfg, &tokenizer, volunteer_seed(name))?;
                     let trainer =
-                        smolvla_volunteer_on(&transport, &setup, name, packed.shard, &device, "cpu-flex").await?;
+                        smolvla_volunteer_on(&transport, &setup, name, packed.shard, &device, backend).await?;
                     let train_examples = trainer.examples().train_examples();
                     tracing::info!(dataset = %root.display(), train_examples, "training on the volunteer's own dataset");
                     (trainer, Some(OwnDataset { signature: packed.signature, train_examples }))

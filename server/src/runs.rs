@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
-use fedvla_aggregator::config::{RunConfig, WorkloadKind};
+use fedvla_aggregator::config::{ComputeDevice, RunConfig, WorkloadKind};
 use fedvla_aggregator::coordinator::RunStatus;
 use fedvla_aggregator::records::{GlobalMetrics, MetricsLine, timestamp};
 use fedvla_aggregator::run_dir::{ModelExporter, RunDir, TrainableSafetensors};
@@ -97,6 +97,7 @@ fn serve_clients(
     let rounds = config.num_server_rounds;
     let attack = Attack { kind: config.attack, strength: config.attack_strength };
     let attackers = config.attackers;
+    let device = config.device;
     let auth_token = config.auth_token().map(str::to_owned);
     // Over TLS, the clients trust the server's own certificate (self-signed, or one of the Mozilla roots' chains).
     let ca_cert = config.tls_files().map(|(cert, _)| cert.to_owned());
@@ -122,7 +123,7 @@ fn serve_clients(
                 }
             }
         });
-        let server = || Server { url: url.clone(), ca_cert: ca_cert.clone(), auth_token: auth_token.clone() };
+        let server = || Server { url: url.clone(), ca_cert: ca_cert.clone(), auth_token: auth_token.clone(), device };
         let mut tasks: Vec<_> = (0..clients)
             .map(|shard| {
                 let attack = (shard < attackers).then_some(attack);
@@ -175,15 +176,16 @@ enum SimulatedData {
     Own(PathBuf),
 }
 
-/// Volunteer `name` on `data` with its own progress bar, on its own thread: trainers' futures need not be `Send`
-/// (the browser's are not), and CPU-bound trainers then train in parallel.
-/// Where `simulate`'s clients join, and what they trust and present there.
+/// Where `simulate`'s clients join, what they trust and present there, and the device they train on.
 struct Server {
     url: String,
     ca_cert: Option<PathBuf>,
     auth_token: Option<String>,
+    device: ComputeDevice,
 }
 
+/// Volunteer `name` on `data` with its own progress bar, on its own thread: trainers' futures need not be `Send`
+/// (the browser's are not), and CPU-bound trainers then train in parallel.
 fn spawn_client(
     server: Server,
     name: String,
@@ -194,7 +196,7 @@ fn spawn_client(
     let (done_tx, done) = oneshot::channel();
     std::thread::spawn(move || {
         let client = async move {
-            let Server { url, ca_cert, auth_token } = server;
+            let Server { url, ca_cert, auth_token, device } = server;
             let identity = native_client::simulated_identity(&name);
             let volunteer = Volunteer {
                 server: &url,
@@ -207,6 +209,7 @@ fn spawn_client(
                 },
                 auth_token,
                 attack,
+                device,
             };
             let summary = native_client::volunteer(volunteer, |event| match event {
                 ClientEvent::Joined { client_id } => bar.set_message(format!("joined as {client_id}")),
@@ -255,7 +258,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
     anyhow::ensure!(config.workload == WorkloadKind::Smolvla, "the centralized baseline trains the smolvla workload");
     let workload = SmolVlaWorkload::prepare_centralized(&config, &run_dir.path().join(SHARDS_DIR))?;
     bars.println(workload.inputs().to_owned());
-    let mut trainer = workload.centralized_trainer().map_err(boxed)?;
+    let mut trainer = workload.centralized_trainer(config.device).map_err(boxed)?;
     let mut evaluator = workload.evaluator().map_err(boxed)?;
     let mut exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
     exporters.extend(workload.exporters());

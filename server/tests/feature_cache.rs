@@ -3,7 +3,7 @@
 //! round computes no row's context again, and a new trainer of the same weights and shard reads the spilled rows
 //! back.
 
-use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::config::{ComputeDevice, RunConfig};
 use fedvla_federation::{LocalTrainer, RoundTask, StrategyParams, UpdateEncoding};
 use fedvla_learner::SmolVlaTrainer;
 use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
@@ -69,8 +69,8 @@ fn two_rounds_agree(cached: &mut SmolVlaTrainer, uncached: &mut SmolVlaTrainer) 
 fn training_with_the_cache_equals_training_without_it() {
     let tmp = tempfile::tempdir().unwrap();
     let workload = workload(tmp.path());
-    let mut cached = workload.centralized_trainer().unwrap();
-    let mut uncached = workload.centralized_trainer().unwrap().with_feature_cache(0);
+    let mut cached = workload.centralized_trainer(ComputeDevice::Cpu).unwrap();
+    let mut uncached = workload.centralized_trainer(ComputeDevice::Cpu).unwrap().with_feature_cache(0);
     assert!(cached.feature_cache().is_some() && uncached.feature_cache().is_none());
     two_rounds_agree(&mut cached, &mut uncached);
     let cache = cached.feature_cache().unwrap();
@@ -86,10 +86,14 @@ fn rows_beyond_the_memory_budget_spill_to_files_and_read_back() {
     let spill_dir = tmp.path().join("features");
     // One byte of memory: every row goes to a file.
     let spilling = || {
-        workload.centralized_trainer().unwrap().with_feature_cache(1).spill_feature_cache(&spill_dir, "frozen", 1 << 30)
+        workload.centralized_trainer(ComputeDevice::Cpu).unwrap().with_feature_cache(1).spill_feature_cache(
+            &spill_dir,
+            "frozen",
+            1 << 30,
+        )
     };
     let mut cached = spilling();
-    let mut uncached = workload.centralized_trainer().unwrap().with_feature_cache(0);
+    let mut uncached = workload.centralized_trainer(ComputeDevice::Cpu).unwrap().with_feature_cache(0);
     two_rounds_agree(&mut cached, &mut uncached);
     let cache = cached.feature_cache().unwrap();
     assert_eq!(cache.bytes(), 0);
@@ -102,12 +106,15 @@ fn rows_beyond_the_memory_budget_spill_to_files_and_read_back() {
     let distinct = cache.misses;
     // A new trainer of the same weights and shard (a restarted volunteer) computes nothing it spilled.
     let mut again = spilling();
-    let mut uncached = workload.centralized_trainer().unwrap().with_feature_cache(0);
+    let mut uncached = workload.centralized_trainer(ComputeDevice::Cpu).unwrap().with_feature_cache(0);
     two_rounds_agree(&mut again, &mut uncached);
     let cache = again.feature_cache().unwrap();
     assert_eq!(cache.misses, 0, "rows computed again (of {distinct} the first trainer computed)");
     // Other frozen weights never read them.
-    let other =
-        workload.centralized_trainer().unwrap().with_feature_cache(1).spill_feature_cache(&spill_dir, "other", 1 << 30);
+    let other = workload.centralized_trainer(ComputeDevice::Cpu).unwrap().with_feature_cache(1).spill_feature_cache(
+        &spill_dir,
+        "other",
+        1 << 30,
+    );
     assert_eq!(other.feature_cache().unwrap().spilled_bytes(), 0);
 }

@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
+use fedvla_aggregator::config::ComputeDevice;
 use fedvla_aggregator::records::{DataSource, MetricsLine, read_metrics};
 use fedvla_aggregator::run_dir::NORM_STATS_FILE;
 use fedvla_data::{CameraSpec, ClientShard, DatasetSpec, DatasetWriter, Episode, FeatureStats, Frame, LeRobotDataset};
@@ -77,6 +78,7 @@ fn join(addr: &str, name: &str, data: Option<PathBuf>) -> std::thread::JoinHandl
                 data,
                 auth_token: None,
                 attack: None,
+                device: ComputeDevice::Cpu,
             };
             volunteer(v, |_| {}).await.map_err(|e| e.to_string())
         })

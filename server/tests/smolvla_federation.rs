@@ -6,7 +6,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use burn::tensor::Device;
-use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::config::{ComputeDevice, RunConfig};
 use fedvla_aggregator::records::RolloutResults;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir, TRAINABLE_FILE};
 use fedvla_app::server;
@@ -496,7 +496,7 @@ fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so
         update_encoding: fedvla_federation::UpdateEncoding::F32,
     };
     let second_round = |keep: bool| {
-        let mut trainer = workload.centralized_trainer().unwrap();
+        let mut trainer = workload.centralized_trainer(ComputeDevice::Cpu).unwrap();
         let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
         trainer.set_global(&global).unwrap();
         rt.block_on(trainer.train(&task(1, false))).unwrap();

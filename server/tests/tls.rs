@@ -7,6 +7,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::*;
+use fedvla_aggregator::config::ComputeDevice;
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_federation::{Introduction, NamedTensors, routes};
 use fedvla_server::native_client::{
@@ -65,6 +66,7 @@ async fn volunteers_join_over_tls_and_nothing_else_gets_in() {
                     data,
                     auth_token: None,
                     attack: None,
+                    device: ComputeDevice::Cpu,
                 };
                 volunteer(v, |_| {}).await.map_err(|e| e.to_string())
             })

@@ -8,6 +8,7 @@ mod common;
 use std::time::Duration;
 
 use common::*;
+use fedvla_aggregator::config::ComputeDevice;
 use fedvla_aggregator::registry::Registry;
 use fedvla_aggregator::registry::VOLUNTEERS_FILE;
 use fedvla_aggregator::run_dir::RunDir;
@@ -433,6 +434,7 @@ async fn without_a_session_every_download_route_of_a_run_with_an_auth_token_answ
                     data: VolunteerData::Shard(None),
                     auth_token: Some("s3cret".into()),
                     attack: None,
+                    device: ComputeDevice::Cpu,
                 };
                 fedvla_server::native_client::volunteer(volunteer, |_| {}).await.map_err(|e| e.to_string())
             })

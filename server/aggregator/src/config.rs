@@ -167,6 +167,33 @@ pub enum ExportDtype {
     Bf16,
 }
 
+/// Where the training steps of `simulate`'s volunteers and of `train`'s centralized baseline run (a volunteer
+/// that joins chooses its own: `fedvla join --device`). The server's held-out evaluation and rollouts stay on
+/// the CPU either way.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ComputeDevice {
+    /// burn's flex backend on the CPU, in every build.
+    #[default]
+    Cpu,
+    /// burn's wgpu backend (WGSL: Vulkan, Metal or DX12, whichever the machine has), in builds with the `gpu`
+    /// feature; every simulated volunteer shares the one GPU.
+    Wgpu,
+}
+
+impl std::str::FromStr for ComputeDevice {
+    type Err = String;
+
+    /// The spellings of the configuration (`--device` on the command line).
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cpu" => Ok(Self::Cpu),
+            "wgpu" => Ok(Self::Wgpu),
+            other => Err(format!("unknown device {other:?}: expected \"cpu\" or \"wgpu\"")),
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields)]
 pub struct RunConfig {
@@ -228,6 +255,9 @@ pub struct RunConfig {
     pub patch_size: usize,
     pub chunk_size: usize,
     pub n_action_steps: usize,
+    /// Absent from run directories written before it existed, which trained on the CPU.
+    #[serde(default)]
+    pub device: ComputeDevice,
     pub eval_every: u64,
     pub rollout_episodes: usize,
     pub client_rollout_episodes: u32,

@@ -6,6 +6,7 @@
 
 use std::path::PathBuf;
 
+use fedvla_aggregator::config::ComputeDevice;
 use fedvla_federation::{ClientError, ClientEvent, ErrorCode};
 use fedvla_server::native_client::{self, Volunteer, VolunteerData};
 use tracing_subscriber::filter::LevelFilter;
@@ -31,6 +32,9 @@ pub struct Args {
     /// Token required by a server started with auth-token set.
     #[arg(long)]
     auth_token: Option<String>,
+    /// Where the training steps run: cpu, or wgpu (a GPU; needs a fedvla built with `--features gpu`).
+    #[arg(long, default_value = "cpu")]
+    device: ComputeDevice,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -51,6 +55,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         data,
         auth_token: args.auth_token,
         attack: None,
+        device: args.device,
     };
     let result = super::support::runtime()?.block_on(native_client::volunteer(volunteer, |event| match event {
         ClientEvent::Trained { round, examples, train_loss } => {

@@ -2,6 +2,7 @@
 
 use std::path::Path;
 
+use fedvla_aggregator::config::ComputeDevice;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::runs::{self, Bars};
 use tracing_subscriber::filter::LevelFilter;
@@ -15,11 +16,16 @@ pub struct Args {
     /// Number of clients (one shard each).
     #[arg(long, default_value_t = 3)]
     clients: usize,
+    /// Where the training steps run: cpu, or wgpu (a GPU; needs a fedvla built with `--features gpu`). Overrides
+    /// the configuration's `device`.
+    #[arg(long)]
+    device: Option<ComputeDevice>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut config = args.config.load()?;
     config.num_clients = args.clients;
+    config.device = args.device.unwrap_or(config.device);
     let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
     // Progress bars own the terminal: only warnings go to stderr, the full log to server.log.
     let _log = super::support::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);

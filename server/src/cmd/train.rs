@@ -3,6 +3,7 @@
 
 use std::path::Path;
 
+use fedvla_aggregator::config::ComputeDevice;
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_server::runs::{self, Bars};
 use tracing_subscriber::filter::LevelFilter;
@@ -13,10 +14,15 @@ use super::support::ConfigArgs;
 pub struct Args {
     #[command(flatten)]
     config: ConfigArgs,
+    /// Where the training steps run: cpu, or wgpu (a GPU; needs a fedvla built with `--features gpu`). Overrides
+    /// the configuration's `device`.
+    #[arg(long)]
+    device: Option<ComputeDevice>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let config = args.config.load()?;
+    let mut config = args.config.load()?;
+    config.device = args.device.unwrap_or(config.device);
     let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
     let _log = super::support::init_tracing(Some(run_dir.log_file()?), LevelFilter::WARN);
     println!("run directory: {}", run_dir.path().display());

@@ -29,13 +29,14 @@ use fedvla_policy::weights::{init_random, safetensors_bytes_as};
 use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
 use fedvla_sim::{Arrangement, TaskKind};
 
-use fedvla_aggregator::config::{EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
+use fedvla_aggregator::config::{ComputeDevice, EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
 use fedvla_aggregator::run_dir::ModelExporter;
 
 use self::export::{LeRobotExport, SimRollouts};
 use self::tokenizer::RunTokenizer;
 use crate::datagen::{GenDataOptions, GenProgress, SEEDS_FILE, generate_dataset, recorded_seeds};
+use crate::device::training_device;
 use crate::workload::Workload;
 
 /// Share of each client's episodes it never trains on, and of all episodes only the server sees.
@@ -422,10 +423,11 @@ impl SmolVlaWorkload {
     }
 
     /// One trainer on every client's training episodes (the shard [`SmolVlaWorkload::prepare_centralized`]
-    /// pooled), from the run's initial weights: the centralized baseline of a federation.
-    pub fn centralized_trainer(&self) -> Result<SmolVlaTrainer, BoxError> {
+    /// pooled), from the run's initial weights, stepping on `device`: the centralized baseline of a federation.
+    pub fn centralized_trainer(&self, device: ComputeDevice) -> Result<SmolVlaTrainer, BoxError> {
         let examples = self.examples(&self.pooled_shard)?;
-        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, self.seed, &Device::flex().autodiff(), "cpu-flex")
+        let (device, backend) = training_device(device)?;
+        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, self.seed, &device, backend)
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {

@@ -67,10 +67,15 @@ fn native_volunteer(addr: std::net::SocketAddr) -> std::thread::JoinHandle<()> {
     })
 }
 
-/// A fresh Chromium (with `chromium_args`) on the join page as volunteer `name`, consent given and Join pressed.
-async fn volunteer_page(handle: &ServerHandle, name: &str, chromium_args: &[&str]) -> Browser {
+/// A fresh Chromium (with `chromium_args`) on the join page as volunteer `name`, with its own `dataset` folder
+/// given to the page's directory input (as a volunteer's file dialog would) when there is one, consent given and
+/// Join pressed.
+async fn volunteer_page(handle: &ServerHandle, name: &str, chromium_args: &[&str], dataset: Option<&Path>) -> Browser {
     let browser = Browser::launch(chromium_args).await;
     browser.goto(&format!("http://{}/?name={name}", handle.addr())).await;
+    if let Some(folder) = dataset {
+        browser.type_into("#dataset-input", &folder.display().to_string()).await;
+    }
     browser.click("#consent").await;
     browser.click("#join").await;
     browser
@@ -117,7 +122,7 @@ async fn a_browser_trains_a_round_beside_a_native_client_uploads_its_rollout_and
     let base = format!("http://{}", handle.addr());
     let native = native_volunteer(handle.addr());
 
-    let browser = volunteer_page(&handle, "browser-e2e", &[]).await;
+    let browser = volunteer_page(&handle, "browser-e2e", &[], None).await;
     let device = browser.wait_for("the device line", Duration::from_secs(120), "return document.getElementById('device').textContent.includes('wasm') && document.getElementById('device').textContent").await;
     eprintln!("browser device: {device}");
     browser
@@ -195,7 +200,7 @@ async fn a_browser_reloaded_mid_round_does_not_stall_the_round_and_rejoins() {
     )
     .await;
     let native = native_volunteer(handle.addr());
-    let browser = volunteer_page(&handle, "browser-reload", &[]).await;
+    let browser = volunteer_page(&handle, "browser-reload", &[], None).await;
     browser
         .wait_for("training in round 1", Duration::from_secs(240), "return document.getElementById('round').textContent === '1' && document.getElementById('stage').textContent === 'training'")
         .await;
@@ -239,7 +244,7 @@ async fn a_browser_with_a_webgpu_adapter_trains_its_round_on_it() {
     let overrides = "num-server-rounds=1 min-clients=1 min-fit=1 local-steps=1 batch-size=1 client-rollout-episodes=0 \
                      round-deadline-ms=290000";
     let (handle, run_dir) = start_server(tmp.path(), overrides).await;
-    let browser = volunteer_page(&handle, "browser-webgpu", &["--enable-unsafe-webgpu"]).await;
+    let browser = volunteer_page(&handle, "browser-webgpu", &["--enable-unsafe-webgpu"], None).await;
     let device = browser
         .wait_for("the device line", Duration::from_secs(120), "return document.getElementById('device').textContent.startsWith('webgpu') && document.getElementById('device').textContent")
         .await;
@@ -248,6 +253,84 @@ async fn a_browser_with_a_webgpu_adapter_trains_its_round_on_it() {
     let record = client_record(&run_dir, 1, "browser-webgpu");
     assert_eq!(record["accepted"], true, "{record}");
     assert!(record["train_loss"].as_f64().is_some_and(f64::is_finite), "{record}");
+    let errors = browser.page_errors().await;
+    assert!(errors.is_empty(), "JavaScript errors on the join page: {errors:?}");
+    browser.quit().await;
+    handle.finish().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_browser_trains_a_round_on_its_own_dataset_folder_read_and_decoded_in_the_page() {
+    if let Some(why) = missing_prerequisite() {
+        eprintln!("SKIPPED: {why}");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let (handle, run_dir) = start_server(
+        tmp.path(),
+        "num-server-rounds=1 client-rollout-episodes=0 federated-stats=true round-deadline-ms=240000",
+    )
+    .await;
+    // The volunteer's own recordings (H.264 mp4, as `fedvla gen-data` writes them), beside files of its own that the
+    // policy does not need.
+    let folder = tmp.path().join("my-recordings");
+    generate_dataset(
+        &folder,
+        &GenDataOptions { episodes: 4, seed: 5_000, image_size: 32, ..Default::default() },
+        |_| {},
+    )
+    .unwrap();
+    std::fs::write(folder.join("notes.txt"), "not for the policy").unwrap();
+    std::fs::write(folder.join("meta/private.json"), "{}").unwrap();
+    let native = native_volunteer(handle.addr());
+
+    let browser = volunteer_page(&handle, "browser-own", &[], Some(&folder)).await;
+    let chosen = browser.eval("return document.getElementById('dataset-choice').textContent").await;
+    assert!(chosen.as_str().unwrap().starts_with("Chosen: my-recordings"), "{chosen}");
+    browser
+        .wait_for("the own dataset's examples", Duration::from_secs(240), "return document.getElementById('stage').textContent.startsWith('your dataset:') || ['training', 'waiting'].some(s => document.getElementById('stage').textContent.startsWith(s))")
+        .await;
+    wait_rounds(&handle, 1).await;
+    native.join().unwrap();
+    browser
+        .wait_for(
+            "the page counting its contribution",
+            Duration::from_secs(30),
+            "return document.getElementById('contributions').textContent === '1'",
+        )
+        .await;
+    browser.screenshot(&screenshot_dir().join("join-page-own-dataset-after-round.png")).await;
+
+    // Its update was aggregated, weighed as an own dataset of its three training episodes (one of four held out).
+    let record = client_record(&run_dir, 1, "browser-own");
+    assert_eq!(record["accepted"], true, "{record}");
+    assert!(record["train_loss"].as_f64().is_some_and(f64::is_finite), "{record}");
+    assert_eq!(record["data"]["kind"], "own", "{record}");
+    let own = fedvla_data::LeRobotDataset::open(&folder).unwrap();
+    let train_frames: usize = own.episodes().iter().map(|e| e.length).sum::<usize>();
+    let claimed = record["data"]["claimed_examples"].as_u64().unwrap() as usize;
+    assert!(claimed > 0 && claimed < train_frames, "claimed {claimed} of {train_frames} frames: {record}");
+    assert_eq!(client_record(&run_dir, 1, "native-0")["accepted"], true);
+
+    // The page read exactly what the policy needs, and said so.
+    let reads = browser
+        .eval("return [...document.querySelectorAll('#dataset-reads li')].map(li => li.textContent.split(':')[0])")
+        .await;
+    let reads: Vec<&str> = reads.as_array().unwrap().iter().map(|r| r.as_str().unwrap()).collect();
+    assert_eq!(
+        reads,
+        [
+            "meta/info.json",
+            "meta/tasks.parquet",
+            "meta/episodes/chunk-000/file-000.parquet",
+            "meta/stats.json",
+            "data/chunk-000/file-000.parquet",
+            "videos/observation.images.top/chunk-000/file-000.mp4",
+            "videos/observation.images.wrist/chunk-000/file-000.mp4",
+        ]
+    );
+    let plan = browser.eval("return document.getElementById('dataset-plan').textContent").await;
+    assert!(plan.as_str().unwrap().starts_with("training on 4 of 4 episodes"), "{plan}");
     let errors = browser.page_errors().await;
     assert!(errors.is_empty(), "JavaScript errors on the join page: {errors:?}");
     browser.quit().await;

@@ -8,6 +8,7 @@ mod gen_data;
 mod join;
 mod loadtest;
 mod parity;
+mod rehearsal;
 mod serve;
 mod simulate;
 mod support;
@@ -37,6 +38,9 @@ pub enum Command {
     Bench(bench::Args),
     /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
     Parity(parity::Args),
+    /// Write a full-size rehearsal's inputs without a download: a smolvla_base-shaped checkpoint of seeded random
+    /// bf16 weights, and a small procedural SO-100 dataset.
+    RehearsalInputs(rehearsal::Args),
     /// Record scripted-expert episodes of the SO-100 sim as a LeRobot v3.0 dataset.
     GenData(gen_data::Args),
     /// List the sim's tasks by name, one a line (what `eval --task` and `gen-data --tasks` take).
@@ -54,6 +58,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Parity(args) => parity::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Loadtest(args) => loadtest::run(args),
+        Command::RehearsalInputs(args) => rehearsal::run(args),
         Command::GenData(args) => gen_data::run(args),
         Command::Tasks(args) => tasks::run(args),
     }

@@ -131,6 +131,11 @@ pub fn print_headline(run: &Path) -> anyhow::Result<()> {
             println!("  {}: held-out loss {:.4}{mse} ({} rows)", task.task, task.heldout_loss, task.heldout_examples);
         }
     }
+    if let Some(last) = lines.iter().rfind(|m| !m.clients.is_empty()) {
+        let took: Vec<String> =
+            last.clients.iter().filter_map(|c| Some(format!("{} {:.1} s", c.name, c.seconds?))).collect();
+        println!("round {} per client (fetching the model, training, uploading): {}", last.round, took.join(", "));
+    }
     let rolled_out: Vec<_> = lines.iter().filter_map(|m| Some((m.round, m.global.as_ref()?.sim.as_ref()?))).collect();
     if let (Some((r0, first)), Some((rn, last))) = (rolled_out.first(), rolled_out.last()) {
         println!(

@@ -87,6 +87,10 @@ pub enum Backbone<'a> {
     Generated(&'a WordTokenizer),
     /// Copy an existing local backbone folder to `vlm/`.
     CopyFrom(&'a Path),
+    /// Write a `vlm/` folder for this configuration with the tokenizer (`tokenizer.json`, `tokenizer_config.json`)
+    /// of an existing backbone folder: a backbone of one size speaking another's vocabulary (a full-size rehearsal
+    /// checkpoint with a small fixture's tokenizer).
+    GeneratedWithTokenizerOf(&'a Path),
 }
 
 /// Writes a LeRobot-loadable policy directory, `model.safetensors` in `dtype`. Every file goes through a
@@ -108,11 +112,16 @@ pub fn export(
         Backbone::Generated(tok) => {
             // A backbone that is not on the Hub travels with the policy as `vlm/`.
             cfg.vlm_model_name = "vlm".into();
-            std::fs::create_dir_all(&vlm).map_err(|e| PolicyError::io(&vlm, e))?;
-            write_json(&vlm.join("config.json"), &cfg.vlm_config_json())?;
+            write_backbone_config(&vlm, &cfg)?;
             write_json(&vlm.join("tokenizer.json"), &tok.to_json())?;
             write_json(&vlm.join("tokenizer_config.json"), &WordTokenizer::tokenizer_config())?;
-            write_json(&vlm.join("processor_config.json"), &processor_config(&cfg))?;
+        }
+        Backbone::GeneratedWithTokenizerOf(src) => {
+            cfg.vlm_model_name = "vlm".into();
+            write_backbone_config(&vlm, &cfg)?;
+            for name in ["tokenizer.json", "tokenizer_config.json"] {
+                copy_file(&src.join(name), &vlm.join(name))?;
+            }
         }
         Backbone::CopyFrom(src) => {
             cfg.vlm_model_name = "vlm".into();
@@ -121,9 +130,7 @@ pub fn export(
             for entry in entries {
                 let path = entry.map_err(|e| PolicyError::io(src, e))?.path();
                 if path.is_file() && path.parent() != Some(vlm.as_path()) {
-                    let to = vlm.join(path.file_name().expect("file name"));
-                    let bytes = std::fs::read(&path).map_err(|e| PolicyError::io(&path, e))?;
-                    fedvla_fs::write_atomic(&to, &bytes).map_err(|e| PolicyError::io(&to, e))?;
+                    copy_file(&path, &vlm.join(path.file_name().expect("file name")))?;
                 }
             }
         }
@@ -131,6 +138,18 @@ pub fn export(
     write_json(&dir.join("config.json"), &cfg.to_lerobot_json())?;
     write_safetensors_as(&dir.join("model.safetensors"), weights, dtype)?;
     stats.write_policy_dir(dir, &cfg)
+}
+
+/// The backbone folder's `config.json` and `processor_config.json` for `cfg`, as transformers reads them.
+fn write_backbone_config(vlm: &Path, cfg: &SmolVlaConfig) -> Result<(), PolicyError> {
+    std::fs::create_dir_all(vlm).map_err(|e| PolicyError::io(vlm, e))?;
+    write_json(&vlm.join("config.json"), &cfg.vlm_config_json())?;
+    write_json(&vlm.join("processor_config.json"), &processor_config(cfg))
+}
+
+fn copy_file(from: &Path, to: &Path) -> Result<(), PolicyError> {
+    let bytes = std::fs::read(from).map_err(|e| PolicyError::io(from, e))?;
+    fedvla_fs::write_atomic(to, &bytes).map_err(|e| PolicyError::io(to, e))
 }
 
 fn write_json(path: &Path, value: &Value) -> Result<(), PolicyError> {

@@ -3,8 +3,8 @@
 
 use burn::tensor::Device;
 use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors, NormalizationStats, TaskHeldOut};
-use fedvla_policy::weights::ParamStore;
-use fedvla_policy::{SmolVla, SmolVlaConfig, WeightMap};
+use fedvla_policy::weights::{HostTensor, ParamStore};
+use fedvla_policy::{SmolVla, SmolVlaConfig};
 
 use fedvla_sim::TaskKind;
 
@@ -22,8 +22,13 @@ pub struct HeldOutEvaluator {
 
 impl HeldOutEvaluator {
     /// `weights` is the full checkpoint the federation started from (its frozen part is reused).
-    pub fn new(cfg: &SmolVlaConfig, weights: &WeightMap, examples: ShardExamples, device: &Device) -> Self {
-        let store = ParamStore::upload(weights.iter(), device, false);
+    pub fn new<'a>(
+        cfg: &SmolVlaConfig,
+        weights: impl IntoIterator<Item = (&'a String, &'a HostTensor)>,
+        examples: ShardExamples,
+        device: &Device,
+    ) -> Self {
+        let store = ParamStore::upload(weights, device, false);
         let held_out = HeldOut::new(&examples.held_out_rows);
         Self { model: SmolVla::new(cfg, &store), examples, held_out, device: device.clone() }
     }

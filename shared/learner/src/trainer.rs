@@ -7,7 +7,7 @@ use fedvla_federation::{
     BoxError, Capabilities, EvalOutput, LocalTrainer, NamedTensors, NormalizationStats, RolloutEpisode, RolloutOutput,
     RolloutRequest, RoundTask, TrainOutput,
 };
-use fedvla_policy::weights::ParamStore;
+use fedvla_policy::weights::{HostTensor, ParamStore};
 use fedvla_policy::{SmolVla, SmolVlaConfig, Trainer, WeightMap};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -31,7 +31,8 @@ pub struct StepProgress {
 pub struct SmolVlaTrainer {
     trainer: Trainer,
     /// The global model on the CPU without autodiff, for held-out evaluation and rollouts: it needs no reads
-    /// from the training device (which a browser's GPU could only do asynchronously) and no graph.
+    /// from the training device (which a browser's GPU could only do asynchronously) and no graph. On the CPU its
+    /// frozen tensors are the trainer's own.
     global_cpu: SmolVla,
     examples: ShardExamples,
     held_out: HeldOut,
@@ -59,7 +60,17 @@ impl SmolVlaTrainer {
         backend: &str,
     ) -> Result<Self, BoxError> {
         let trainer = Trainer::new(cfg, weights, device, seed)?;
-        let store = ParamStore::upload(weights.iter(), &Device::flex(), false);
+        // Training on the CPU, the evaluation model shares the trainer's frozen tensors (at the base size 1.4 GB
+        // of f32 not held twice); on a GPU it keeps its own copy on the CPU.
+        let cpu = Device::flex();
+        let store = if *device == cpu {
+            let trainable = cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name);
+            let trainable: Vec<(&String, &HostTensor)> =
+                trainable.filter_map(|name| weights.get_key_value(&name)).collect();
+            trainer.frozen_store().overlaid(&ParamStore::upload(trainable, &cpu, false))
+        } else {
+            ParamStore::upload(weights.iter(), &cpu, false)
+        };
         let held_out = HeldOut::new(&examples.held_out_rows);
         Ok(Self {
             trainer,

@@ -97,11 +97,13 @@ pub async fn smolvla_volunteer_on(
     check_smolvla(setup)?;
     let cfg = policy_config(setup)?;
     let frozen_url = setup.frozen_url.as_deref().ok_or("the server offers no frozen weights")?;
+    // Each download's bytes go as soon as they are parsed, before the trainer uploads its tensors (at the base
+    // size the frozen ones are 0.7 GB in bf16).
     let frozen = fetch.get(frozen_url, "frozen weights", Some(frozen_url)).await?;
+    let mut weights = parse_safetensors(&frozen, Path::new("frozen weights"))?;
+    drop(frozen);
     // Never cached: versions are numbered per run, so a kept version 3 could be another run's.
     let global = fetch.get(&routes::model(setup.model_version), "global model", None).await?;
-
-    let mut weights = parse_safetensors(&frozen, Path::new("frozen weights"))?;
     weights.extend(parse_safetensors(&global, Path::new("global model"))?);
     let examples = ShardExamples::new(shard, &cfg)?;
     let tasks = SimTasks::from_wire(&setup.rollout_tasks)?;

@@ -123,6 +123,12 @@ impl Trainer {
         self.frozen.to_host()
     }
 
+    /// The frozen tensors without autodiff, on the training device's own backend and sharing their memory: a model
+    /// beside the trainer on the same device evaluates with them at no copy.
+    pub fn frozen_store(&self) -> ParamStore {
+        ParamStore::from_flat(self.frozen.flat().map(|(k, t, s)| (k.clone(), (t.clone().inner(), s.clone()))).collect())
+    }
+
     /// Replaces the trainable tensors (e.g. with a new global model); the optimizer's moments stay (see
     /// [`Trainer::reset_optimizer`]).
     pub fn set_trainable_weights(&mut self, weights: &WeightMap) -> Result<(), PolicyError> {

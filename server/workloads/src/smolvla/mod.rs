@@ -26,7 +26,7 @@ use fedvla_learner::tensors::to_named;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::weights::{init_random, safetensors_bytes_as};
-use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
+use fedvla_policy::{HostTensor, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
 use fedvla_sim::{Arrangement, TaskKind};
 
 use fedvla_aggregator::config::{ComputeDevice, EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
@@ -46,7 +46,10 @@ const SERVER_HELD_OUT: f64 = 0.15;
 /// Everything the server and the clients of one SmolVLA run share.
 pub struct SmolVlaWorkload {
     cfg: SmolVlaConfig,
-    weights: WeightMap,
+    /// The initial checkpoint, split: the backbone tensors no client trains, held once and shared by the exporters
+    /// (1.4 GB of f32 at the base size), and the trainable ones, the round-0 global model.
+    frozen: Arc<WeightMap>,
+    trainable: WeightMap,
     /// The dataset's normalisation statistics, and the policy's view of them.
     dataset_stats: NormalizationStats,
     stats: NormStats,
@@ -402,6 +405,9 @@ impl SmolVlaWorkload {
                 policy.weights
             }
         };
+        let trained: std::collections::BTreeSet<String> =
+            cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
+        let (trainable, frozen): (WeightMap, WeightMap) = weights.into_iter().partition(|(k, _)| trained.contains(k));
         let dataset_stats = dataset_stats(&dataset)?;
         let stats = norm_stats(&dataset_stats)?;
         Ok(Self {
@@ -410,7 +416,8 @@ impl SmolVlaWorkload {
             dataset_stats,
             stats,
             cfg,
-            weights,
+            frozen: Arc::new(frozen),
+            trainable,
             tokenizer,
             export_dtype,
             checkpoint_dtype,
@@ -427,7 +434,8 @@ impl SmolVlaWorkload {
     pub fn centralized_trainer(&self, device: ComputeDevice) -> Result<SmolVlaTrainer, BoxError> {
         let examples = self.examples(&self.pooled_shard)?;
         let (device, backend) = training_device(device)?;
-        SmolVlaTrainer::new(&self.cfg, &self.weights, examples, self.seed, &device, backend)
+        let weights: WeightMap = self.checkpoint().map(|(k, v)| (k.clone(), v.clone())).collect();
+        SmolVlaTrainer::new(&self.cfg, &weights, examples, self.seed, &device, backend)
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -446,45 +454,34 @@ impl SmolVlaWorkload {
         &self.cfg
     }
 
-    /// The backbone tensors no client trains: exported with every round and downloaded once by volunteers.
-    fn frozen_weights(&self) -> WeightMap {
-        let trainable: std::collections::BTreeSet<String> =
-            self.cfg.param_specs().into_iter().filter(|s| s.trainable).map(|s| s.name).collect();
-        self.weights.iter().filter(|(k, _)| !trainable.contains(*k)).map(|(k, v)| (k.clone(), v.clone())).collect()
+    /// Every tensor of the initial checkpoint, frozen and trainable.
+    fn checkpoint(&self) -> impl Iterator<Item = (&String, &HostTensor)> {
+        self.frozen.iter().chain(&self.trainable)
     }
 }
 
 impl Workload for SmolVlaWorkload {
     fn initial_model(&self) -> Result<NamedTensors, BoxError> {
-        let trainable: WeightMap = self
-            .cfg
-            .param_specs()
-            .into_iter()
-            .filter(|s| s.trainable)
-            .map(|s| (s.name.clone(), self.weights[&s.name].clone()))
-            .collect();
-        Ok(to_named(&trainable)?)
+        Ok(to_named(&self.trainable)?)
     }
 
     fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError> {
         let examples = self.examples(&self.server_shard)?;
-        Ok(Box::new(HeldOutEvaluator::new(&self.cfg, &self.weights, examples, &Device::flex())))
+        Ok(Box::new(HeldOutEvaluator::new(&self.cfg, self.checkpoint(), examples, &Device::flex())))
     }
 
     fn exporters(&self) -> Vec<Box<dyn ModelExporter>> {
-        // One copy of the frozen tensors for both exporters.
-        let frozen = Arc::new(self.frozen_weights());
         vec![
             Box::new(LeRobotExport {
                 cfg: self.cfg.clone(),
-                frozen: Arc::clone(&frozen),
+                frozen: Arc::clone(&self.frozen),
                 stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.clone(),
                 dtype: self.export_dtype,
             }),
             Box::new(SimRollouts {
                 cfg: self.cfg.clone(),
-                frozen,
+                frozen: Arc::clone(&self.frozen),
                 stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.tokenizer(),
                 tasks: self.rollout_tasks.clone(),
@@ -498,7 +495,7 @@ impl Workload for SmolVlaWorkload {
             workload: WorkloadKind::Smolvla,
             shards: self.client_shards.clone(),
             policy: serde_json::json!({ "policy": self.cfg.to_lerobot_json(), "vlm": self.cfg.vlm_config_json() }),
-            frozen: Some(safetensors_bytes_as(&self.frozen_weights(), self.checkpoint_dtype)?.into()),
+            frozen: Some(safetensors_bytes_as(&self.frozen, self.checkpoint_dtype)?.into()),
             rollout_tasks: rollout_tasks.to_wire(),
             signature: Some(self.signature.clone()),
             norm_stats: Some(self.dataset_stats.clone()),

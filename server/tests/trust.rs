@@ -12,9 +12,9 @@ use fedvla_aggregator::config::ComputeDevice;
 use fedvla_aggregator::registry::Registry;
 use fedvla_aggregator::registry::VOLUNTEERS_FILE;
 use fedvla_aggregator::run_dir::RunDir;
-use fedvla_federation::{ErrorCode, Evaluator, FedAvg, Identity, ServerMessage, TrainOutput, aggregate};
+use fedvla_federation::{AggregateError, ErrorCode, FedAvg, Identity, ServerMessage, TrainOutput, aggregate};
 use fedvla_server::native_client::{Volunteer, VolunteerData};
-use fedvla_workloads::linreg::{self, LinRegEvaluator};
+use fedvla_workloads::linreg;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -73,16 +73,16 @@ async fn a_lone_client_claiming_zero_examples_still_closes_the_round() {
     assert_eq!(run_dir.load_model(1).unwrap(), update);
 }
 
-/// An update whose values are near f32's largest: its aggregate is finite, but the held-out evaluation of it
-/// overflows.
+/// An update whose values are near f32's largest: finite, but averaged in, the held-out evaluation of the aggregate
+/// would overflow.
 fn overflowing_update() -> fedvla_federation::NamedTensors {
     linreg_head(f32::MAX / 2.0, f32::MAX / 2.0)
 }
 
 #[tokio::test]
-async fn an_update_that_breaks_the_evaluation_is_dropped_and_the_rest_aggregated() {
+async fn an_update_no_model_holds_is_dropped_as_it_arrives_and_the_rest_aggregated() {
     let base = tempfile::tempdir().unwrap();
-    // The evaluation's check alone: the norm screen would leave this update out before any aggregate.
+    // The strategy's check alone: the norm screen would leave this update out before any aggregate.
     let cfg = config("num-server-rounds=1 min-clients=3 min-fit=2 update-norm-factor=0");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
@@ -99,18 +99,18 @@ async fn an_update_that_breaks_the_evaluation_is_dropped_and_the_rest_aggregated
         task.await.unwrap().unwrap();
         updates.push(recorded.lock().unwrap()[0].1.clone());
     }
-    // The premise: with the attacker in, the held-out loss of the aggregate is not finite.
+    // The premise: its values are beyond what FedAvg's exact sum takes (and would overflow the evaluation).
     let mut with_attacker: Vec<_> = updates.iter().map(|u| (u.update.clone(), u.examples)).collect();
     with_attacker.push((overflowing_update(), weight(2)));
-    let broken = aggregate(&FedAvg, &linreg::initial_model(0), with_attacker.iter().map(|(t, n)| (t, *n))).unwrap();
-    assert!(!LinRegEvaluator::default().evaluate(&broken.global).unwrap().heldout_loss.is_finite());
+    let refused = aggregate(&FedAvg, &linreg::initial_model(0), with_attacker.iter().map(|(t, n)| (t, *n)));
+    assert!(matches!(refused, Err(AggregateError::OutOfRange { index: 2, .. })), "{refused:?}");
 
     assert_close(&run_dir.load_model(1).unwrap(), &weighted_mean(&updates), 1e-6);
     let line = &metrics(run_dir.path())[1];
     let attacker_record =
         line["clients"].as_array().unwrap().iter().find(|c| c["client_id"] == attacker_id).unwrap().clone();
     assert_eq!(attacker_record["accepted"], false);
-    assert!(attacker_record["dropped"].as_str().unwrap().contains("non-finite"), "{attacker_record}");
+    assert!(attacker_record["dropped"].as_str().unwrap().contains("beyond"), "{attacker_record}");
     assert!(line["global"]["heldout_loss"].as_f64().unwrap().is_finite());
     assert_eq!(line["rejections"]["dropped_update"], 1);
 }
@@ -136,7 +136,8 @@ async fn a_round_with_no_usable_aggregate_is_skipped_and_the_run_goes_on() {
     honest.await.unwrap().unwrap();
     assert_eq!((status.completed_rounds, status.skipped_rounds), (2, 1));
     let lines = metrics(run_dir.path());
-    assert!(lines[1]["skipped"].as_str().unwrap().contains("non-finite"), "{}", lines[1]);
+    assert!(lines[1]["skipped"].as_str().unwrap().contains("fewer than min-fit"), "{}", lines[1]);
+    assert!(lines[1]["clients"][0]["dropped"].as_str().unwrap().contains("beyond"), "{}", lines[1]);
     assert_eq!(run_dir.load_model(1).unwrap(), linreg::initial_model(0), "a skipped round keeps the model");
     let (round, update) = recorded.lock().unwrap()[0].clone();
     assert_eq!(round, 2);

@@ -5,7 +5,8 @@
 //!
 //! Round lifecycle: wait until the operator lets rounds run and `min-clients` are connected; take up the
 //! operator's new settings; sample clients (seeded, by `fraction-fit`); send tasks; collect until every sampled
-//! client is done or the deadline passes ([`round`]); aggregate, evaluate and persist ([`close`]); next round. A
+//! client is done or the deadline passes, folding each update into the round's aggregation once the norm screen
+//! ([`screen`]) has decided on it ([`round`]); close the aggregate, evaluate and persist ([`close`]); next round. A
 //! round with fewer than `min-fit` updates is retried with a fresh sample. Stopped by the operator, the run ends
 //! after the current round.
 //!
@@ -15,6 +16,7 @@
 
 mod close;
 mod round;
+mod screen;
 mod state;
 
 use std::collections::BTreeMap;
@@ -41,7 +43,8 @@ impl Coordinator {
                 .unwrap_or_default(),
             None => Vec::new(),
         };
-        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new(), accepted_norms };
+        let screen = screen::NormScreen::new(accepted_norms);
+        let mut this = Running { c: self, clients: BTreeMap::new(), round_rejections: BTreeMap::new(), screen };
         let result = this.run().await;
         match &result {
             Err(CoordinatorError::Cancelled) => tracing::info!("coordinator cancelled"),
@@ -114,9 +117,8 @@ impl Running {
             let state = self.start_round(round, attempt);
             let mut state = self.collect(state).await?;
             self.c.sessions.end_uploads(round);
-            let updates = state.take_updates();
-            let count = updates.len() as u32;
-            if updates.len() < self.c.config.min_fit {
+            let count = state.accepted() as u32;
+            if state.accepted() < self.c.config.min_fit {
                 tracing::warn!(round, attempt, updates = count, min_fit = self.c.config.min_fit, "round retried");
                 self.broadcast(ServerMessage::RoundClosed {
                     round,
@@ -130,16 +132,18 @@ impl Running {
                 continue;
             }
             let evaluate = round.is_multiple_of(self.c.config.eval_every) || round == self.c.config.num_server_rounds;
-            let updates = self.screen_norms(round, updates, &mut state);
-            let outcome = if updates.len() < self.c.config.min_fit {
+            self.settle(&mut state, true);
+            self.record_outliers(&mut state);
+            let folded = state.participants.values().filter(|p| p.folded).count();
+            let outcome = if folded < self.c.config.min_fit {
                 let reason = format!(
-                    "{} of {count} updates passed the norm screen, fewer than min-fit ({})",
-                    updates.len(),
+                    "{folded} of {count} updates passed the norm screen and the strategy's checks, fewer than min-fit \
+                     ({})",
                     self.c.config.min_fit
                 );
                 close::Aggregated::Skipped { reason }
             } else {
-                self.aggregate_checked(round, updates, evaluate, &mut state).await?
+                self.aggregate_checked(round, evaluate, &mut state).await?
             };
             let mut line = MetricsLine {
                 attempt: Some(attempt),
@@ -159,7 +163,7 @@ impl Running {
             };
             let line = self.persist(round, line, eval).await?;
             if let Some(norms) = line.accepted_update_norms() {
-                self.accepted_norms = norms;
+                self.screen.remember(norms);
             }
             self.broadcast(ServerMessage::RoundClosed {
                 round,

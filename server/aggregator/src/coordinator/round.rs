@@ -1,15 +1,20 @@
 //! A round in flight: sampling its clients, sending their tasks, and handling what connections report until every
-//! sampled client is done or the deadline passes.
+//! sampled client is done or the deadline passes. Each update is folded into the round's aggregation as soon as
+//! the norm screen ([`super::screen`]) has decided on it, mostly on arrival, and then let go: the round holds one
+//! running aggregate, not its clients' models (but for the few the screen is still deciding on, and what a robust
+//! rule buffers itself).
 
 use std::collections::BTreeMap;
 use std::time::Duration;
 
 use fedvla_federation::{
-    Contribution, ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, fnv1a, mix,
+    Aggregation, Contribution, ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, fnv1a,
+    mix,
 };
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
+use super::screen::Verdict;
 use super::state::{ClientEntry, CoordinatorError, Event, Running, UpdateReceived};
 use crate::events::{ClientState, RunEvent};
 use crate::records::{ClientRecord, DataSource, RolloutResults};
@@ -23,10 +28,15 @@ const CLIENT_ROLLOUT_SEEDS_PER_SHARD: u64 = 1_000;
 pub(super) struct Participant {
     name: String,
     data: Option<DataSource>,
-    /// The accepted update (its values moved into `model`).
+    /// The accepted update (its values folded, held in `held` or let go).
     update: Option<AcceptedUpdate>,
-    /// The client's trained tensors, until the round takes them.
-    model: Option<NamedTensors>,
+    /// The client's trained tensors while the norm screen has not decided on them.
+    held: Option<NamedTensors>,
+    /// Whether the update is in the round's aggregate.
+    pub(super) folded: bool,
+    /// Whether the norm screen left the update out (its reason, which names the round's median, is written when
+    /// the round closes).
+    pub(super) outlier: bool,
     /// What the update weighs: the client's shard's training examples, or its own data's within the cap (1 each
     /// where neither is known).
     examples: u64,
@@ -60,52 +70,31 @@ pub(super) struct RoundState {
     pub(super) participants: BTreeMap<u64, Participant>,
     /// Whether the tasks asked for sim rollouts, which clients run after their held-out evaluation.
     rollouts_requested: bool,
+    /// The strategy's aggregation of the round, opened from the global model its clients train from; taken when
+    /// the round closes.
+    pub(super) aggregation: Option<Box<dyn Aggregation>>,
 }
 
-/// An update ready to aggregate.
-pub(super) struct RoundUpdate {
-    pub client_id: u64,
-    pub tensors: NamedTensors,
-    /// The weight the server gives it: the examples of the client's shard.
-    pub examples: u64,
-    /// The mean loss of the client's local steps, as it reported it.
-    pub train_loss: f64,
-    /// See [`Participant`]'s.
-    pub key: u64,
-    /// See [`Participant`]'s.
-    pub lr_sum: f64,
-    /// The L2 norm of its change from the round's global model.
-    pub norm: f64,
-}
-
-impl RoundUpdate {
-    pub fn contribution(&self) -> Contribution<'_> {
-        Contribution {
-            tensors: &self.tensors,
-            examples: self.examples,
-            train_loss: Some(self.train_loss),
-            client: Some(self.key),
-            lr_sum: Some(self.lr_sum),
-        }
+impl Participant {
+    /// The norm of its accepted update's change from the round's global model.
+    pub(super) fn norm(&self) -> Option<f64> {
+        self.update.map(|u| u.norm)
     }
 }
 
 impl RoundState {
-    /// The round's updates in the order of the clients' names, so the aggregate does not depend on arrival or id
-    /// order.
-    pub(super) fn take_updates(&mut self) -> Vec<RoundUpdate> {
-        let mut updates: Vec<(&str, RoundUpdate)> = self
-            .participants
-            .iter_mut()
-            .filter_map(|(&client_id, p)| {
-                let tensors = p.model.take()?;
-                let AcceptedUpdate { train_loss, norm, .. } = *p.update.as_ref()?;
-                let (examples, key, lr_sum) = (p.examples, p.key, p.lr_sum);
-                Some((p.name.as_str(), RoundUpdate { client_id, tensors, examples, train_loss, key, lr_sum, norm }))
-            })
-            .collect();
-        updates.sort_by(|a, b| (a.0, a.1.client_id).cmp(&(b.0, b.1.client_id)));
-        updates.into_iter().map(|(_, u)| u).collect()
+    pub(super) fn round(&self) -> u64 {
+        self.round
+    }
+
+    /// The norms of the round's accepted updates.
+    pub(super) fn norms(&self) -> Vec<f64> {
+        self.participants.values().filter_map(Participant::norm).collect()
+    }
+
+    /// Updates accepted (decoded, fitting the model), screened or not.
+    pub(super) fn accepted(&self) -> usize {
+        self.participants.values().filter(|p| p.update.is_some()).count()
     }
 
     /// One metrics record per sampled client.
@@ -116,7 +105,7 @@ impl RoundState {
                 client_id,
                 name: p.name.clone(),
                 data: p.data,
-                accepted: p.update.is_some() && p.dropped.is_none(),
+                accepted: p.folded && p.dropped.is_none(),
                 examples: p.update.as_ref().map(|_| p.examples),
                 claimed_examples: p.update.as_ref().map(|u| u.claimed_examples),
                 dropped: p.dropped.clone(),
@@ -216,7 +205,8 @@ impl Running {
         }
         tracing::info!(round, attempt, sampled = k, connected = n, "round started");
         self.observe(RunEvent::RoundStarted { round, attempt, sampled: participants.keys().copied().collect() });
-        RoundState { round, participants, rollouts_requested }
+        let aggregation = Some(self.c.strategy.lock().expect("strategy lock").begin(&self.c.global));
+        RoundState { round, participants, rollouts_requested, aggregation }
     }
 
     /// Handles events until every participant is done or the deadline passes.
@@ -232,10 +222,52 @@ impl Running {
                 event = self.next_event() => {
                     let event = event?;
                     self.handle(event, Some(&mut state));
+                    self.settle(&mut state, false);
                 }
             }
         }
         Ok(state)
+    }
+
+    /// Folds every held update the norm screen has decided to keep and lets go of those it left out. `closing`:
+    /// no more updates come, so the screen decides on all.
+    pub(super) fn settle(&mut self, state: &mut RoundState, closing: bool) {
+        let norms = state.norms();
+        let pending = match closing {
+            true => 0,
+            false => state.participants.values().filter(|p| p.update.is_none() && !p.done).count(),
+        };
+        let (round, factor) = (state.round, self.c.config.update_norm_factor);
+        for (&client_id, p) in state.participants.iter_mut().filter(|(_, p)| p.held.is_some()) {
+            let Some(update) = p.update else { continue };
+            match self.screen.verdict(factor, update.norm, &norms, pending) {
+                Verdict::Undecided => {}
+                Verdict::Outlier => {
+                    p.held = None;
+                    p.outlier = true;
+                }
+                Verdict::Keep => {
+                    let tensors = p.held.take().expect("filtered on held");
+                    let contribution = Contribution {
+                        tensors: &tensors,
+                        examples: p.examples,
+                        train_loss: Some(update.train_loss),
+                        client: Some(p.key),
+                        lr_sum: Some(p.lr_sum),
+                    };
+                    let aggregation = state.aggregation.as_mut().expect("open until the round closes");
+                    match aggregation.fold(contribution) {
+                        Ok(()) => p.folded = true,
+                        Err(e) => {
+                            let reason = format!("the strategy refused it: {e}");
+                            tracing::warn!(round, client_id, %reason, "update left out of the aggregate");
+                            p.dropped = Some(reason);
+                            self.count(ErrorCode::DroppedUpdate);
+                        }
+                    }
+                }
+            }
+        }
     }
 
     /// Counts an update the coordinator refused and tells its client why.
@@ -301,7 +333,8 @@ impl Running {
                     }
                     let norm = model.distance(&self.c.global).expect("into_model gave the global model's tensors");
                     p.update = Some(AcceptedUpdate { claimed_examples, train_loss, bytes, norm });
-                    p.model = Some(model);
+                    // Folded, or left out, as soon as the norm screen decides ([`Running::settle`]).
+                    p.held = Some(model);
                 }
                 Some(_) if Some(update.round) == current => {
                     let message = format!("a second update for round {} from this client", update.round);

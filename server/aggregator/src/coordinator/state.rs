@@ -13,6 +13,7 @@ use fedvla_federation::{
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
+use super::screen::NormScreen;
 use crate::config::RunConfig;
 use crate::control::Controls;
 use crate::events::RunObserver;
@@ -187,8 +188,8 @@ pub(super) struct Running {
     pub(super) clients: BTreeMap<u64, ClientEntry>,
     /// Refusals since the last metrics line.
     pub(super) round_rejections: BTreeMap<ErrorCode, u64>,
-    /// The norms of the last completed round's accepted updates (see `screen_norms`).
-    pub(super) accepted_norms: Vec<f64>,
+    /// The norm screen, with the norms of the last aggregated round's accepted updates.
+    pub(super) screen: NormScreen,
 }
 
 /// Runs `f` on tokio's blocking pool (aggregation, evaluation, file writes), passing its panic on.

@@ -5,6 +5,7 @@
 //! The CLI (src/main.rs, src/cmd/) is a thin layer over this, the aggregator (`fedvla-aggregator`), the app
 //! (`fedvla-app`) and the workloads (`fedvla-workloads`).
 
+pub mod aggregation_memory;
 pub mod attack;
 pub mod experiment;
 pub mod loadtest;

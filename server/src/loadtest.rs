@@ -170,7 +170,7 @@ pub fn run(options: &LoadOptions) -> anyhow::Result<LoadReport> {
     };
     let logs: Vec<VolunteerLog> = logs.into_iter().collect::<Result<_, _>>().context("a volunteer panicked")?;
     let metrics = read_metrics(run_dir.path())?;
-    let (peak_rss_bytes, final_rss_bytes) = memory()?;
+    let (peak_rss_bytes, final_rss_bytes) = crate::aggregation_memory::rss()?;
     Ok(LoadReport {
         clients,
         rounds,
@@ -346,17 +346,6 @@ fn cpu_seconds(threads: Option<&str>) -> anyhow::Result<f64> {
         }
     }
     Ok(total)
-}
-
-/// The process's peak and current resident memory, in bytes (/proc/self/status).
-fn memory() -> anyhow::Result<(u64, u64)> {
-    let status = std::fs::read_to_string("/proc/self/status").context("/proc/self/status")?;
-    let kib = |key: &str| -> anyhow::Result<u64> {
-        let line = status.lines().find_map(|l| l.strip_prefix(key)).with_context(|| format!("no {key}"))?;
-        let value = line.trim().trim_end_matches("kB").trim();
-        Ok(value.parse::<u64>().with_context(|| format!("{key} {value}"))? * 1024)
-    };
-    Ok((kib("VmHWM:")?, kib("VmRSS:")?))
 }
 
 impl fmt::Display for LoadReport {

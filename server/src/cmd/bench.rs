@@ -2,7 +2,9 @@
 //! For each model size (LeRobot's default freezing: the action expert and its projections train), the exact
 //! bytes of one update under every encoding, frames included; then, at one size, how fast the client encodes
 //! and the server decodes a delta of random values; then, per size, training samples/s on the CPU with and
-//! without the frozen-feature cache (each row's context keys and values computed once, then reused).
+//! without the frozen-feature cache (each row's context keys and values computed once, then reused); then, at one
+//! size, how fast FedAvg folds updates (GB/s of f32 updates) and a real server's resident memory over a round of
+//! simulated clients ([`fedvla_server::aggregation_memory`]).
 
 use std::time::Instant;
 
@@ -10,10 +12,11 @@ use burn::tensor::Device;
 use fedvla_federation::codec::{
     DEFAULT_MAX_FRAME_BYTES, HEADER_LEN, decode_payload, encode_delta_payload, payload_len,
 };
-use fedvla_federation::{NamedTensors, TensorSpec, UpdateEncoding};
+use fedvla_federation::{FedAvg, NamedTensors, Strategy, TensorSpec, UpdateEncoding};
 use fedvla_policy::vlm_with_expert::ContextKv;
 use fedvla_policy::weights::init_random;
 use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
+use fedvla_server::aggregation_memory::{measure_round, model_of_size};
 
 /// What the Python/Flower peer ships per transfer (NOTES.md): the yardstick of the ratios.
 const PEER_BYTES: f64 = 1.8e9;
@@ -38,6 +41,12 @@ pub struct Args {
     cache_batch: usize,
     #[arg(long, default_value_t = 3)]
     cache_steps: usize,
+    /// Model size (every tensor) whose aggregation is measured ("" skips it).
+    #[arg(long, default_value = "small")]
+    aggregation_size: String,
+    /// Simulated clients of the measured round, and updates folded for the throughput.
+    #[arg(long, default_value_t = 50)]
+    aggregation_clients: usize,
 }
 
 fn encodings(topk_fraction: f64) -> [UpdateEncoding; 5] {
@@ -100,6 +109,47 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for size in sizes {
         cache_speed(size, args.cache_batch, args.cache_steps)?;
     }
+    if !args.aggregation_size.is_empty() {
+        aggregation(&args.aggregation_size, args.aggregation_clients)?;
+    }
+    Ok(())
+}
+
+/// FedAvg's fold throughput over `clients` updates of every tensor of `size`, one thread, and a real server's
+/// resident memory over a round of `clients` simulated volunteers.
+fn aggregation(size: &str, clients: usize) -> anyhow::Result<()> {
+    let global = model_of_size(size, 0)?;
+    let updates: Vec<NamedTensors> = (0..clients.min(8))
+        .map(|i| global.zip_map(&global, |g, _| g + (i as f32 + 1.0) * 1e-4))
+        .collect::<Result<_, _>>()?;
+    let mut round = FedAvg.begin(&global);
+    let start = Instant::now();
+    for i in 0..clients {
+        round.fold((&updates[i % updates.len()], 100 + i as u64).into())?;
+    }
+    let fold = start.elapsed().as_secs_f64();
+    round.finish()?;
+    let model_bytes = 4 * global.iter().map(|(_, t)| t.values.len()).sum::<usize>();
+    let gb = (clients * model_bytes) as f64 / 1e9;
+    let output = std::env::temp_dir().join(format!("fedvla-bench-aggregation-{}", std::process::id()));
+    let r = measure_round(&global, clients, &output)?;
+    std::fs::remove_dir_all(&output)?;
+    let mb = |b: u64| b as f64 / 1e6;
+    println!(
+        "\nAggregation of `{size}` (every tensor, {:.1} MB of f32), FedAvg, {clients} clients:",
+        mb(model_bytes as u64)
+    );
+    println!("| fold, one thread | server RSS before the round | peak over it | growth | round |");
+    println!("|---|---|---|---|---|");
+    println!(
+        "| {:.2} GB/s | {:.0} MB | {:.0} MB | {:.1} MB ({:.1} models) | {:.1} s |",
+        gb / fold,
+        mb(r.before_rss_bytes),
+        mb(r.peak_rss_bytes),
+        mb(r.peak_rss_bytes.saturating_sub(r.before_rss_bytes)),
+        r.growth_in_models(),
+        r.round_seconds
+    );
     Ok(())
 }
 

@@ -59,7 +59,7 @@ impl ExactSum {
 
 /// Whether [`ExactSum::add`] takes every one of `values`: `Err` with the first it refuses.
 pub(super) fn in_range(mut values: impl Iterator<Item = f64>) -> Result<(), f64> {
-    match values.find(|v| !(v.abs() < MAX_MAGNITUDE)) {
+    match values.find(|v| v.is_nan() || v.abs() >= MAX_MAGNITUDE) {
         Some(v) => Err(v),
         None => Ok(()),
     }

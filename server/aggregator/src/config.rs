@@ -238,6 +238,7 @@ pub struct RunConfig {
     pub dataset: String,
     pub dataset_episodes: usize,
     pub dataset_action_noise: f64,
+    pub dataset_seed: u64,
     #[serde(with = "task_names")]
     pub dataset_tasks: Vec<TaskKind>,
     pub num_clients: usize,

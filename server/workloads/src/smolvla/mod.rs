@@ -89,9 +89,10 @@ pub fn rollout_tasks(dataset: &LeRobotDataset) -> Vec<TaskKind> {
 
 /// The dataset a run trains on: the configured path, or for the embedded default its recording of
 /// `dataset-episodes` episodes of `dataset-tasks` at the policy's image size
-/// (`data/so100-sim/<N>ep_<S>px[_noise<D>][_<task>+<task>...]`, recorded by the sim's expert from seed 0 on first
-/// use, whatever the run's seed, so every run of that size shares it).
-fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
+/// (`data/so100-sim/<N>ep_<S>px[_noise<D>][_<task>+<task>...][_seed<F>]`, recorded by the sim's expert from seed
+/// `dataset-seed` on first use, whatever the run's seed, so every run of that size shares it). Runs started in
+/// parallel call this first, once: two runs recording the same dataset at once would write over each other.
+pub fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
     let root = dataset_root(config)?;
     if config.dataset != EMBEDDED_DATASET {
         anyhow::ensure!(
@@ -122,7 +123,7 @@ fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
     ));
     let options = GenDataOptions {
         episodes: config.dataset_episodes,
-        seed: 0,
+        seed: config.dataset_seed,
         tasks: config.dataset_tasks.clone(),
         image_size: model_config(config)?.resize_imgs_with_padding.1 as u32,
         action_noise_degrees: config.dataset_action_noise as f32,
@@ -137,7 +138,7 @@ fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
 }
 
 /// The dataset a run trains on, recorded or not yet: `dataset`, or the embedded default's recording for
-/// the run's episodes, image size, perturbation and tasks.
+/// the run's episodes, image size, perturbation, tasks and first seed.
 pub fn dataset_root(config: &RunConfig) -> anyhow::Result<PathBuf> {
     if config.dataset != EMBEDDED_DATASET {
         return Ok(PathBuf::from(&config.dataset));
@@ -145,8 +146,8 @@ pub fn dataset_root(config: &RunConfig) -> anyhow::Result<PathBuf> {
     Ok(embedded_dataset(config, model_config(config)?.resize_imgs_with_padding.1))
 }
 
-/// Where the embedded default dataset of this many episodes at this image size (and perturbation, and tasks) lives.
-/// The cube-in-bowl task alone adds nothing to the name: its recordings predate the other tasks.
+/// Where the embedded default dataset of this many episodes at this image size (and perturbation, tasks and first
+/// seed) lives. The cube-in-bowl task alone and seed 0 add nothing to the name: their recordings predate the others.
 fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
     let noise = match config.dataset_action_noise {
         0.0 => String::new(),
@@ -156,7 +157,11 @@ fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
         [TaskKind::CubeInBowl] => String::new(),
         tasks => format!("_{}", tasks.iter().map(|task| task.name()).collect::<Vec<_>>().join("+")),
     };
-    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}{tasks}", config.dataset_episodes))
+    let first_seed = match config.dataset_seed {
+        0 => String::new(),
+        seed => format!("_seed{seed}"),
+    };
+    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}{tasks}{first_seed}", config.dataset_episodes))
 }
 
 /// The partitioner's strategy for the configuration's `partitioning` (and `partition-alpha`).

@@ -1,6 +1,6 @@
 //! A tiny experiment end to end (2 arms x 2 seeds, the tiny SmolVLA, a few steps): every run, the final sim
 //! evaluation, report.json's schema with intervals around their means, the plots, resuming a finished grid, and
-//! the same numbers from a second experiment of the same seeds.
+//! the same numbers from a second experiment of the same seeds, run two at a time.
 
 use std::path::Path;
 
@@ -21,6 +21,7 @@ fn config(out: &Path, dataset: &Path) -> ExperimentConfig {
         eval_seed: 10_000,
         run_config,
         output_dir: out.display().to_string(),
+        parallel_runs: 1,
         arms: vec![
             Arm { name: "centralized".into(), mode: Mode::Centralized, run_config: String::new() },
             // Client-level DP (noise 0.3 x 0.05 / 2 clients per value): the report states the privacy each round spent.
@@ -95,7 +96,8 @@ fn a_tiny_experiment_reports_intervals_and_repeats_itself() {
     experiment::run(&first, &|_| panic!("no run should start")).unwrap();
     assert_eq!(final_of(&tmp.path().join("a")), before);
 
-    let second = config(&tmp.path().join("b"), &dataset);
+    // Two runs at a time: the same numbers.
+    let second = ExperimentConfig { parallel_runs: 2, ..config(&tmp.path().join("b"), &dataset) };
     let again: Report = serde_json::from_slice(
         &std::fs::read(experiment::run(&second, &|_| Ok(())).unwrap().join(REPORT_JSON)).unwrap(),
     )

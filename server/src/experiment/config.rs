@@ -1,12 +1,13 @@
 //! An experiment as its TOML file describes it (arms x seeds, the final sim evaluation), and what each finished
-//! run leaves behind (`final.json`).
+//! run of the runner leaves behind (`final.json`, and its last held-out evaluation).
 
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use fedvla_aggregator::config::RunConfig;
-use fedvla_aggregator::records::RolloutResults;
+use fedvla_aggregator::records::{MetricsLine, RolloutResults};
 use fedvla_aggregator::run_dir::write_atomic;
+use fedvla_federation::EvalMetrics;
 use serde::{Deserialize, Serialize};
 
 /// An experiment, as its TOML file says it.
@@ -27,7 +28,14 @@ pub struct ExperimentConfig {
     /// Where the experiment's folder goes (`<output-dir>/<name>/`).
     #[serde(default = "default_output_dir")]
     pub output_dir: String,
+    /// Runs at once (each federation keeps about `num-clients` cores busy).
+    #[serde(default = "one")]
+    pub parallel_runs: usize,
     pub arms: Vec<Arm>,
+}
+
+fn one() -> usize {
+    1
 }
 
 fn default_eval_seed() -> u64 {
@@ -58,12 +66,15 @@ pub enum Mode {
     Federated,
 }
 
-/// What a finished run leaves in `final.json`: its held-out evaluation in the sim, and its wall time.
+/// What a finished run leaves in `final.json`: its evaluation in the sim on held-out layouts (where its runner asked
+/// for one: an experiment's runs, not a search's trials, which are judged on the server's held-out episodes alone),
+/// and its wall time.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FinalEvaluation {
     /// The last round, whose global model was evaluated.
     pub round: u64,
-    pub sim: RolloutResults,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim: Option<RolloutResults>,
     /// Training wall time (the run, without this final evaluation), seconds.
     pub train_seconds: f64,
 }
@@ -76,6 +87,7 @@ impl ExperimentConfig {
         let config: Self = toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         anyhow::ensure!(!config.seeds.is_empty() && !config.arms.is_empty(), "{}: no seeds or no arms", path.display());
         anyhow::ensure!(config.eval_episodes > 0, "{}: eval-episodes must be at least 1", path.display());
+        anyhow::ensure!(config.parallel_runs > 0, "{}: parallel-runs must be at least 1", path.display());
         for arm in &config.arms {
             anyhow::ensure!(
                 !arm.name.is_empty() && arm.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_'),
@@ -119,4 +131,9 @@ pub fn read_final(run: &Path) -> anyhow::Result<FinalEvaluation> {
     let path = run.join(FINAL_FILE);
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// A run's last held-out evaluation on the server's episodes (every run evaluates its last round).
+pub fn last_heldout(metrics: &[MetricsLine]) -> Option<&EvalMetrics> {
+    metrics.iter().rev().find_map(|l| l.global.as_ref()?.eval.as_ref())
 }

@@ -9,7 +9,7 @@ use std::path::Path;
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
-use super::config::{ExperimentConfig, FINAL_FILE, Mode, read_final};
+use super::config::{ExperimentConfig, FINAL_FILE, Mode, last_heldout, read_final};
 use super::plot::{Curve, plot_curves};
 use super::stats::Interval;
 use fedvla_aggregator::records::{RolloutResults, read_metrics};
@@ -145,19 +145,16 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
             Some((l.round, g.eval.as_ref()?.heldout_loss, g.sim.as_ref().map(|s| s.success_rate)))
         })
         .collect();
-    let last = metrics
-        .iter()
-        .rev()
-        .find_map(|l| l.global.as_ref()?.eval.clone())
-        .with_context(|| format!("{}: no evaluated round", run.display()))?;
+    let last = last_heldout(&metrics).with_context(|| format!("{}: no evaluated round", run.display()))?;
     let final_eval = read_final(run)?;
-    let episodes = &final_eval.sim.episodes;
+    let final_sim = final_eval.sim.with_context(|| format!("{}: no final evaluation in the sim", run.display()))?;
+    let episodes = &final_sim.episodes;
     Ok(RunFigures {
         seed,
         heldout_loss: last.heldout_loss,
         action_mse: last.action_mse,
         action_l1: last.action_l1,
-        success_rate: final_eval.sim.success_rate.unwrap_or(0.0),
+        success_rate: final_sim.success_rate.unwrap_or(0.0),
         successes: episodes.iter().filter(|e| e.success).count() as u64,
         episodes: episodes.len() as u64,
         success_lengths: episodes.iter().filter(|e| e.success).map(|e| f64::from(e.length)).collect(),
@@ -165,7 +162,7 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         curve,
         privacy: metrics.iter().filter_map(|l| Some((l.round, l.privacy?))).filter(|(round, _)| *round > 0).collect(),
         heldout_by_task: last.heldout_by_task.clone(),
-        final_sim: final_eval.sim,
+        final_sim,
     })
 }
 
@@ -359,7 +356,8 @@ fn ratio(runs: &[RunFigures], central: &[RunFigures]) -> Ratio {
     }
 }
 
-fn interval(i: &Interval, digits: usize) -> String {
+/// `mean [low, high]` to `digits` decimals.
+pub(crate) fn interval(i: &Interval, digits: usize) -> String {
     format!("{:.d$} [{:.d$}, {:.d$}]", i.mean, i.ci95_low, i.ci95_high, d = digits)
 }
 

@@ -14,6 +14,7 @@ mod simulate;
 mod support;
 mod tasks;
 mod train;
+mod tune;
 
 use clap::Subcommand;
 
@@ -29,6 +30,9 @@ pub enum Command {
     Train(train::Args),
     /// Run arms (centralized, federations) x seeds and report them with intervals.
     Experiment(experiment::Args),
+    /// Search a federation's hyperparameters by successive halving, then judge the winner against the base on
+    /// seeds and data the search never saw.
+    Tune(tune::Args),
     /// Roll a policy (or the scripted expert) out in the sim: success rate, videos, results.json.
     Eval(eval::Args),
     /// Load-test a server in this process with N WebSocket volunteers over loopback: latencies, CPU, memory,
@@ -54,6 +58,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Simulate(args) => simulate::run(args),
         Command::Train(args) => train::run(args),
         Command::Experiment(args) => experiment::run(args),
+        Command::Tune(args) => tune::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Parity(args) => parity::run(args),
         Command::Bench(args) => bench::run(args),

@@ -13,9 +13,10 @@ use super::support::ConfigArgs;
 pub struct Args {
     #[command(flatten)]
     config: ConfigArgs,
-    /// Number of clients (one shard each).
-    #[arg(long, default_value_t = 3)]
-    clients: usize,
+    /// Number of clients (one shard each); without it, the configuration's `num-clients` (3 by default), so that
+    /// a configuration file (`fedvla tune`'s best.toml) runs as it is.
+    #[arg(long)]
+    clients: Option<usize>,
     /// Where the training steps run: cpu, or wgpu (a GPU; needs a fedvla built with `--features gpu`). Overrides
     /// the configuration's `device`.
     #[arg(long)]
@@ -24,7 +25,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut config = args.config.load()?;
-    config.num_clients = args.clients;
+    config.num_clients = args.clients.unwrap_or(config.num_clients);
     config.device = args.device.unwrap_or(config.device);
     let run_dir = RunDir::create(Path::new(&config.output_dir), &config)?;
     // Progress bars own the terminal: only warnings go to stderr, the full log to server.log.

@@ -152,7 +152,13 @@ fn execute_one(spec: &RunSpec, on_start: OnStart<'_>, bar: &ProgressBar) -> anyh
         let success = sim.success_rate.unwrap_or(0.0);
         line += &format!(", sim success {success:.2} on {} held-out layouts", sim.episodes.len());
     }
-    bar.println(format!("{line} ({train_seconds:.0} s)"));
+    let line = format!("{line} ({train_seconds:.0} s)");
+    // Where there is no terminal to draw the bar on (a log of a search of hours), the line still goes out.
+    if bar.is_hidden() {
+        println!("{line}");
+    } else {
+        bar.println(line);
+    }
     let evaluation = FinalEvaluation { round, sim, train_seconds };
     write_final(path, &evaluation)?;
     // The clients' shards are copies of the dataset (over a gigabyte a federated run) that nothing reads once the

@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Command, Output};
 
-use fedvla_data::video::VideoFile;
+use fedvla_data::DirFiles;
+use fedvla_data::video::{FrameSource, Mp4Frames, VideoFile};
 use fedvla_policy::policy_dir::{Backbone, export};
 use fedvla_policy::{FeatureStats, NormStats, SmolVlaConfig, WordTokenizer};
 use fedvla_sim::TaskKind;
@@ -99,9 +100,11 @@ fn tiny_random_policy_is_rolled_out_filmed_and_reported() {
     assert!(video.windows(4).any(|w| w == b"moov"), "finished mp4 has its index");
     // 61 frames of 128x64 (the first before any action): far more than the boxes alone.
     assert!(video.len() > 4096, "{} bytes", video.len());
-    let decoded = VideoFile::open(&video_path(&out, 0)).unwrap();
+    let (dir, file) = (out.as_path(), video_path(&out, 0).strip_prefix(&out).unwrap().to_path_buf());
+    let files = std::sync::Arc::new(DirFiles::new(dir));
+    let decoded = VideoFile::open(&*files, &file).unwrap();
     assert_eq!(decoded.frame_count() as u64, length + 1, "the start and every step");
-    let first = &decoded.frames_at(&[0.0], 1e-3).unwrap()[0];
+    let first = &Mp4Frames::new(files).frames_at(&file, &[0.0], 1e-3).unwrap()[0];
     assert_eq!((first.width, first.height), (128, 64), "top and wrist side by side");
     let half = |x0: usize| -> Vec<u8> {
         first.data.chunks_exact(128 * 3).flat_map(|row| row[x0 * 3..(x0 + 64) * 3].to_vec()).collect()

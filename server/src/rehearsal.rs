@@ -8,7 +8,7 @@ use std::path::Path;
 use anyhow::Context;
 use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, synthetic};
 use fedvla_policy::policy_dir::{Backbone, export};
-use fedvla_policy::weights::init_random;
+use fedvla_policy::weights::{host_refs, init_random};
 use fedvla_policy::{FeatureStats, NormStats, SmolVlaConfig, StoredDtype};
 
 /// The rehearsal dataset's one task (a string the smolvla-tiny-a fixture's tokenizer was trained on).
@@ -31,7 +31,7 @@ pub fn write_checkpoint(dir: &Path, seed: u64, tokenizer_of: &Path) -> anyhow::R
     };
     let normalised = cfg.input_features.iter().filter(|f| f.kind == "STATE").chain(&cfg.output_features);
     let stats = NormStats { features: normalised.map(unit).collect() };
-    export(dir, &cfg, &weights, &stats, Backbone::GeneratedWithTokenizerOf(tokenizer_of), StoredDtype::Bf16)
+    export(dir, &cfg, host_refs(&weights), &stats, Backbone::GeneratedWithTokenizerOf(tokenizer_of), StoredDtype::Bf16)
         .with_context(|| format!("writing the rehearsal checkpoint to {}", dir.display()))
 }
 

@@ -66,7 +66,15 @@ fn tiny_random_policy_is_rolled_out_filmed_and_reported() {
         ]),
     };
     let tokenizer = WordTokenizer::from_texts([fedvla_sim::TASK]);
-    export(&policy, &cfg, &weights, &stats, Backbone::Generated(&tokenizer), fedvla_policy::StoredDtype::F32).unwrap();
+    export(
+        &policy,
+        &cfg,
+        fedvla_policy::weights::host_refs(&weights),
+        &stats,
+        Backbone::Generated(&tokenizer),
+        fedvla_policy::StoredDtype::F32,
+    )
+    .unwrap();
 
     let out = tmp.path().join("eval");
     let run = fedvla(&[

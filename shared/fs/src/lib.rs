@@ -16,10 +16,15 @@ fn named(e: io::Error, p: &Path) -> io::Error {
 
 /// Writes `bytes` to `path` atomically; the error names the path that failed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    write_atomic_with(path, |tmp| File::create(tmp)?.write_all(bytes))
+}
+
+/// [`write_atomic`] of a file that `write` creates at the temporary path it is given: a writer that streams (a
+/// checkpoint written tensor by tensor) never holds the whole file in memory.
+pub fn write_atomic_with(path: &Path, write: impl FnOnce(&Path) -> io::Result<()>) -> io::Result<()> {
     let file_name = path.file_name().ok_or_else(|| io::Error::other(format!("{}: not a file path", path.display())))?;
     let tmp = path.with_file_name(format!(".{}{TEMPORARY_SUFFIX}", file_name.to_string_lossy()));
-    let mut file = File::create(&tmp).map_err(|e| named(e, &tmp))?;
-    file.write_all(bytes).and_then(|()| file.sync_all()).map_err(|e| {
+    write(&tmp).and_then(|()| File::open(&tmp)?.sync_all()).map_err(|e| {
         let _ = fs::remove_file(&tmp);
         named(e, &tmp)
     })?;

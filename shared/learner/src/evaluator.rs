@@ -3,7 +3,7 @@
 
 use burn::tensor::Device;
 use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors, NormalizationStats, TaskHeldOut};
-use fedvla_policy::weights::{HostTensor, ParamStore};
+use fedvla_policy::weights::ParamStore;
 use fedvla_policy::{SmolVla, SmolVlaConfig};
 
 use fedvla_sim::TaskKind;
@@ -21,16 +21,10 @@ pub struct HeldOutEvaluator {
 }
 
 impl HeldOutEvaluator {
-    /// `weights` is the full checkpoint the federation started from (its frozen part is reused).
-    pub fn new<'a>(
-        cfg: &SmolVlaConfig,
-        weights: impl IntoIterator<Item = (&'a String, &'a HostTensor)>,
-        examples: ShardExamples,
-        device: &Device,
-    ) -> Self {
-        let store = ParamStore::upload(weights, device, false);
+    /// `store` holds the full checkpoint the federation started from, on `device` (its frozen part is reused).
+    pub fn new(cfg: &SmolVlaConfig, store: &ParamStore, examples: ShardExamples, device: &Device) -> Self {
         let held_out = HeldOut::new(&examples.held_out_rows);
-        Self { model: SmolVla::new(cfg, &store), examples, held_out, device: device.clone() }
+        Self { model: SmolVla::new(cfg, store), examples, held_out, device: device.clone() }
     }
 }
 

@@ -5,9 +5,14 @@ use fedvla_policy::WeightMap;
 use fedvla_policy::weights::HostTensor;
 
 pub fn to_named(weights: &WeightMap) -> Result<NamedTensors, TensorError> {
+    into_named(weights.clone())
+}
+
+/// [`to_named`] of weights it takes: their values move, not copied (a base-size update is 0.4 GB).
+pub fn into_named(weights: WeightMap) -> Result<NamedTensors, TensorError> {
     let mut out = NamedTensors::new();
     for (name, t) in weights {
-        out.insert(name.as_str(), t.shape.clone(), t.data.clone())?;
+        out.insert(name, t.shape, t.data)?;
     }
     Ok(out)
 }

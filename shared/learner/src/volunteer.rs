@@ -107,5 +107,5 @@ pub async fn smolvla_volunteer_on(
     weights.extend(parse_safetensors(&global, Path::new("global model"))?);
     let examples = ShardExamples::new(shard, &cfg)?;
     let tasks = SimTasks::from_wire(&setup.rollout_tasks)?;
-    Ok(SmolVlaTrainer::new(&cfg, &weights, examples, volunteer_seed(name), device, backend)?.with_rollouts(tasks))
+    Ok(SmolVlaTrainer::new(&cfg, weights, examples, volunteer_seed(name), device, backend)?.with_rollouts(tasks))
 }

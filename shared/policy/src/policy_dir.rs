@@ -10,7 +10,9 @@ use crate::config::{SmolVlaConfig, VlmConfig};
 use crate::error::PolicyError;
 use crate::normalize::NormStats;
 use crate::tokenizer::{Tokenizer, WordTokenizer};
-use crate::weights::{StoredDtype, WeightMap, check_keys, read_checkpoint, write_safetensors_as};
+use crate::weights::{
+    StoredDtype, TensorRef, WeightMap, check_keys, check_shapes, read_checkpoint, write_safetensors_as,
+};
 
 /// A policy read from disk.
 #[derive(Debug, Clone)]
@@ -93,17 +95,20 @@ pub enum Backbone<'a> {
     GeneratedWithTokenizerOf(&'a Path),
 }
 
-/// Writes a LeRobot-loadable policy directory, `model.safetensors` in `dtype`. Every file goes through a
-/// temporary name and a rename, so an interrupted export never leaves a half-written checkpoint behind.
-pub fn export(
+/// Writes a LeRobot-loadable policy directory, `model.safetensors` in `dtype`, of `weights`, every tensor of the
+/// checkpoint wherever it is held (the frozen ones and a round's trainable ones need not be merged first: each is
+/// read and encoded as it is written). Every file goes through a temporary name and a rename, so an interrupted
+/// export never leaves a half-written checkpoint behind.
+pub fn export<'a>(
     dir: &Path,
     cfg: &SmolVlaConfig,
-    weights: &WeightMap,
+    weights: impl IntoIterator<Item = (&'a String, TensorRef<'a>)>,
     stats: &NormStats,
     backbone: Backbone<'_>,
     dtype: StoredDtype,
 ) -> Result<(), PolicyError> {
-    check_keys(&cfg.param_specs(), weights, "export")?;
+    let weights: Vec<(&String, TensorRef<'_>)> = weights.into_iter().collect();
+    check_shapes(&cfg.param_specs(), weights.iter().map(|(k, t)| (k.as_str(), t.shape())), "export")?;
     std::fs::create_dir_all(dir).map_err(|e| PolicyError::io(dir, e))?;
     let mut cfg = cfg.clone();
     let vlm = dir.join("vlm");
@@ -182,7 +187,7 @@ fn processor_config(cfg: &SmolVlaConfig) -> Value {
 mod tests {
     use super::*;
     use crate::normalize::FeatureStats;
-    use crate::weights::init_random;
+    use crate::weights::{host_refs, init_random};
 
     fn stats() -> NormStats {
         let mut s = NormStats::default();
@@ -198,7 +203,7 @@ mod tests {
         let cfg = SmolVlaConfig::tiny();
         let weights = init_random(&cfg.param_specs(), 7);
         let tok = WordTokenizer::from_texts(["put the cube in the bowl"]);
-        export(&dir, &cfg, &weights, &stats(), Backbone::Generated(&tok), StoredDtype::F32).unwrap();
+        export(&dir, &cfg, host_refs(&weights), &stats(), Backbone::Generated(&tok), StoredDtype::F32).unwrap();
         let loaded = PolicyDir::load(&dir).unwrap();
         assert_eq!(loaded.dtype, StoredDtype::F32);
         assert_eq!(loaded.weights.len(), weights.len());
@@ -221,8 +226,8 @@ mod tests {
         let cfg = SmolVlaConfig::tiny();
         let weights = init_random(&cfg.param_specs(), 7);
         let tok = WordTokenizer::from_texts(["put the cube in the bowl"]);
-        export(&f32_dir, &cfg, &weights, &stats(), Backbone::Generated(&tok), StoredDtype::F32).unwrap();
-        export(&bf16_dir, &cfg, &weights, &stats(), Backbone::Generated(&tok), StoredDtype::Bf16).unwrap();
+        export(&f32_dir, &cfg, host_refs(&weights), &stats(), Backbone::Generated(&tok), StoredDtype::F32).unwrap();
+        export(&bf16_dir, &cfg, host_refs(&weights), &stats(), Backbone::Generated(&tok), StoredDtype::Bf16).unwrap();
         let loaded = PolicyDir::load(&bf16_dir).unwrap();
         assert_eq!(loaded.dtype, StoredDtype::Bf16);
         for (k, t) in &weights {

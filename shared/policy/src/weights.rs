@@ -10,7 +10,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
-use safetensors::{Dtype, SafeTensors, serialize};
+use safetensors::{Dtype, SafeTensors, serialize, serialize_to_file};
 
 use crate::config::ParamSpec;
 use crate::error::PolicyError;
@@ -117,6 +117,14 @@ impl StoredDtype {
         }
     }
 
+    /// Bytes per value.
+    fn bytes(self) -> usize {
+        match self {
+            Self::F32 => 4,
+            Self::Bf16 => 2,
+        }
+    }
+
     fn encode(self, values: &[f32]) -> Vec<u8> {
         match self {
             Self::F32 => values.iter().flat_map(|x| x.to_le_bytes()).collect(),
@@ -126,53 +134,130 @@ impl StoredDtype {
     }
 }
 
+/// A tensor of a checkpoint to be written, where it is held: on the host, or on a device. Its values are read and
+/// encoded only when the writer reaches it, so a checkpoint is written (or serialised) holding one tensor's bytes at
+/// a time beside its weights, never a copy of them all (1.8 GB of f32 at the base size).
+#[derive(Debug, Clone, Copy)]
+pub enum TensorRef<'a> {
+    Host(&'a HostTensor),
+    Device { flat: &'a Tensor<1>, shape: &'a [usize] },
+}
+
+impl TensorRef<'_> {
+    pub fn shape(&self) -> &[usize] {
+        match self {
+            Self::Host(t) => &t.shape,
+            Self::Device { shape, .. } => shape,
+        }
+    }
+
+    fn numel(&self) -> usize {
+        self.shape().iter().product()
+    }
+
+    fn encode(&self, dtype: StoredDtype) -> Vec<u8> {
+        match self {
+            Self::Host(t) => dtype.encode(&t.data),
+            Self::Device { flat, .. } => {
+                dtype.encode(&flat.to_data().convert::<f32>().try_into_vec::<f32>().expect("f32 tensor data"))
+            }
+        }
+    }
+}
+
+/// Every tensor of `weights`, as [`TensorRef`]s.
+pub fn host_refs(weights: &WeightMap) -> impl Iterator<Item = (&String, TensorRef<'_>)> + Clone {
+    weights.iter().map(|(k, t)| (k, TensorRef::Host(t)))
+}
+
+/// A [`TensorRef`] as safetensors' writers see it, encoded in `dtype` when its bytes are asked for.
+struct Encoded<'a> {
+    tensor: TensorRef<'a>,
+    dtype: StoredDtype,
+}
+
+impl safetensors::View for Encoded<'_> {
+    fn dtype(&self) -> Dtype {
+        self.dtype.safetensors()
+    }
+
+    fn shape(&self) -> &[usize] {
+        self.tensor.shape()
+    }
+
+    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
+        self.tensor.encode(self.dtype).into()
+    }
+
+    fn data_len(&self) -> usize {
+        self.tensor.numel() * self.dtype.bytes()
+    }
+}
+
+fn encoded<'a>(
+    tensors: impl IntoIterator<Item = (&'a String, TensorRef<'a>)>,
+    dtype: StoredDtype,
+) -> impl Iterator<Item = (&'a String, Encoded<'a>)> {
+    tensors.into_iter().map(move |(k, tensor)| (k, Encoded { tensor, dtype }))
+}
+
 /// Writes tensors as F32 safetensors (the dtype LeRobot's `save_pretrained` uses for fp32 models), atomically,
 /// so a crash never leaves a half-written checkpoint.
 pub fn write_safetensors(path: &Path, tensors: &WeightMap) -> Result<(), PolicyError> {
-    write_safetensors_as(path, tensors, StoredDtype::F32)
+    write_safetensors_as(path, host_refs(tensors), StoredDtype::F32)
 }
 
-/// [`write_safetensors`] in `dtype`.
-pub fn write_safetensors_as(path: &Path, tensors: &WeightMap, dtype: StoredDtype) -> Result<(), PolicyError> {
-    fedvla_fs::write_atomic(path, &safetensors_bytes_as(tensors, dtype)?).map_err(|e| PolicyError::io(path, e))
+/// [`write_safetensors`] in `dtype`, streamed to the file tensor by tensor.
+pub fn write_safetensors_as<'a>(
+    path: &Path,
+    tensors: impl IntoIterator<Item = (&'a String, TensorRef<'a>)>,
+    dtype: StoredDtype,
+) -> Result<(), PolicyError> {
+    let views = encoded(tensors, dtype);
+    fedvla_fs::write_atomic_with(path, |tmp| serialize_to_file(views, None, tmp).map_err(std::io::Error::other))
+        .map_err(|e| PolicyError::io(path, e))
 }
 
 /// Serialises tensors as F32 safetensors bytes.
 pub fn safetensors_bytes(tensors: &WeightMap) -> Result<Vec<u8>, PolicyError> {
-    safetensors_bytes_as(tensors, StoredDtype::F32)
+    safetensors_bytes_as(host_refs(tensors), StoredDtype::F32)
 }
 
-/// Serialises tensors as safetensors bytes of `dtype`.
-pub fn safetensors_bytes_as(tensors: &WeightMap, dtype: StoredDtype) -> Result<Vec<u8>, PolicyError> {
-    let raw: Vec<(String, Vec<u8>, Vec<usize>)> =
-        tensors.iter().map(|(k, t)| (k.clone(), dtype.encode(&t.data), t.shape.clone())).collect();
-    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = raw
-        .iter()
-        .map(|(k, b, s)| {
-            let view = safetensors::tensor::TensorView::new(dtype.safetensors(), s.clone(), b)
-                .expect("consistent tensor view");
-            (k.clone(), view)
-        })
-        .collect();
-    serialize(views, None).map_err(|e| PolicyError::Safetensors { path: "<memory>".into(), message: e.to_string() })
+/// Serialises tensors as safetensors bytes of `dtype`, encoding one tensor at a time into the result.
+pub fn safetensors_bytes_as<'a>(
+    tensors: impl IntoIterator<Item = (&'a String, TensorRef<'a>)>,
+    dtype: StoredDtype,
+) -> Result<Vec<u8>, PolicyError> {
+    serialize(encoded(tensors, dtype), None)
+        .map_err(|e| PolicyError::Safetensors { path: "<memory>".into(), message: e.to_string() })
 }
 
 /// Compares a checkpoint with the configuration's tensor list and reports, in one error, every
 /// missing key, unexpected key and shape mismatch.
 pub fn check_keys(specs: &[ParamSpec], weights: &WeightMap, source_name: &str) -> Result<(), PolicyError> {
+    check_shapes(specs, weights.iter().map(|(k, t)| (k.as_str(), t.shape.as_slice())), source_name)
+}
+
+/// [`check_keys`] of a checkpoint given as its tensors' names and shapes (one held in parts, or on a device).
+pub fn check_shapes<'a>(
+    specs: &[ParamSpec],
+    shapes: impl IntoIterator<Item = (&'a str, &'a [usize])>,
+    source_name: &str,
+) -> Result<(), PolicyError> {
+    let shapes: BTreeMap<&str, &[usize]> = shapes.into_iter().collect();
     let mut report = Vec::new();
     for spec in specs {
-        match weights.get(&spec.name) {
+        match shapes.get(spec.name.as_str()) {
             None => report.push(format!("  missing key {} (expected shape {:?})", spec.name, spec.shape)),
-            Some(t) if t.shape != spec.shape => report.push(format!(
+            Some(shape) if *shape != spec.shape.as_slice() => report.push(format!(
                 "  wrong shape for {}: file has {:?}, config expects {:?}",
-                spec.name, t.shape, spec.shape
+                spec.name, shape, spec.shape
             )),
             Some(_) => {}
         }
     }
     let known: std::collections::HashSet<&str> = specs.iter().map(|s| s.name.as_str()).collect();
-    for key in weights.keys().filter(|k| !known.contains(k.as_str())) {
+    for key in shapes.keys().filter(|k| !known.contains(*k)) {
         report.push(format!("  unexpected key {key}"));
     }
     if report.is_empty() {
@@ -231,6 +316,25 @@ impl ParamStore {
         Self { tensors, reads: None }
     }
 
+    /// [`ParamStore::upload`] of tensors it takes: each one's values move to the device, and on the CPU they stay
+    /// where they are (no copy: a checkpoint read is never held twice while it is uploaded).
+    pub fn upload_owned(
+        tensors: impl IntoIterator<Item = (String, HostTensor)>,
+        device: &Device,
+        require_grad: bool,
+    ) -> Self {
+        let tensors = tensors
+            .into_iter()
+            .map(|(k, t)| {
+                let len = t.data.len();
+                let flat = Tensor::<1>::from_data(TensorData::new(t.data, [len]), device);
+                let flat = if require_grad { flat.require_grad() } else { flat };
+                (k, (flat, t.shape))
+            })
+            .collect();
+        Self { tensors, reads: None }
+    }
+
     pub fn from_flat(tensors: BTreeMap<String, (Tensor<1>, Vec<usize>)>) -> Self {
         Self { tensors, reads: None }
     }
@@ -262,6 +366,11 @@ impl ParamStore {
 
     pub fn flat(&self) -> impl Iterator<Item = (&String, &Tensor<1>, &Vec<usize>)> {
         self.tensors.iter().map(|(k, (t, s))| (k, t, s))
+    }
+
+    /// Every tensor, as [`TensorRef`]s (to write them without reading them all at once).
+    pub fn refs(&self) -> impl Iterator<Item = (&String, TensorRef<'_>)> + Clone {
+        self.tensors.iter().map(|(k, (flat, shape))| (k, TensorRef::Device { flat, shape }))
     }
 
     /// [`ParamStore::to_host`], read asynchronously (a browser's WebGPU device cannot read synchronously).

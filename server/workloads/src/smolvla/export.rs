@@ -2,15 +2,16 @@
 //! and filmed in the sim.
 
 use std::path::Path;
-use std::sync::{Arc, RwLock};
+use std::sync::RwLock;
 
 use burn::tensor::Device;
 use fedvla_federation::{BoxError, NamedTensors, NormalizationStats};
 use fedvla_learner::examples::norm_stats;
-use fedvla_learner::rollout::SimPolicy;
+use fedvla_learner::rollout::{SimPolicy, SimTasks};
 use fedvla_learner::tensors::to_weights;
 use fedvla_policy::policy_dir::export;
-use fedvla_policy::{NormStats, SmolVlaConfig, StoredDtype, Tokenizer, WeightMap};
+use fedvla_policy::weights::{ParamStore, host_refs};
+use fedvla_policy::{NormStats, SmolVla, SmolVlaConfig, StoredDtype, Tokenizer};
 use fedvla_sim::TaskKind;
 
 use fedvla_aggregator::config::RunConfig;
@@ -26,7 +27,7 @@ use crate::sim_eval::{Agent, ROLLOUT_VIDEO_SIZE, SimEvalOptions, evaluate_in_sim
 /// may change it; 0: none).
 pub(super) struct SimRollouts {
     pub(super) cfg: SmolVlaConfig,
-    pub(super) frozen: Arc<WeightMap>,
+    pub(super) frozen: ParamStore,
     /// The dataset's, until the run agrees others by federated statistics.
     pub(super) stats: RwLock<NormStats>,
     pub(super) tokenizer: Tokenizer,
@@ -47,10 +48,11 @@ impl ModelExporter for SimRollouts {
         if config.rollout_episodes == 0 || !evaluated {
             return Ok(None);
         }
-        let mut weights = (*self.frozen).clone();
-        weights.extend(to_weights(global));
+        let cpu = Device::flex();
+        let model =
+            SmolVla::new(&self.cfg, &self.frozen.overlaid(&ParamStore::upload_owned(to_weights(global), &cpu, false)));
         let stats = self.stats.read().expect("statistics lock").clone();
-        let policy = SimPolicy::new(&self.cfg, &weights, stats, &self.tokenizer, &self.tasks, &Device::flex())?;
+        let policy = SimPolicy::from_model(model, stats, SimTasks::tokenize(&self.tasks, &self.tokenizer, &self.cfg)?)?;
         let source = format!("global model of round {round}");
         let options = SimEvalOptions {
             episodes: config.rollout_episodes,
@@ -87,7 +89,7 @@ impl ModelExporter for SimRollouts {
 /// Writes each round's global model as a LeRobot policy directory (`global_model/round_N/policy`).
 pub(super) struct LeRobotExport {
     pub(super) cfg: SmolVlaConfig,
-    pub(super) frozen: Arc<WeightMap>,
+    pub(super) frozen: ParamStore,
     /// The dataset's, until the run agrees others by federated statistics.
     pub(super) stats: RwLock<NormStats>,
     pub(super) tokenizer: RunTokenizer,
@@ -102,10 +104,11 @@ impl ModelExporter for LeRobotExport {
         _config: &RunConfig,
         dir: &Path,
     ) -> Result<Option<SimFigures>, BoxError> {
-        let mut weights = (*self.frozen).clone();
-        weights.extend(to_weights(global));
+        // The frozen tensors are read from where the run holds them as they are written, never merged into a copy.
+        let trainable = to_weights(global);
+        let weights = self.frozen.refs().chain(host_refs(&trainable));
         let stats = self.stats.read().expect("statistics lock").clone();
-        export(&dir.join(POLICY_DIR), &self.cfg, &weights, &stats, self.tokenizer.backbone(), self.dtype)?;
+        export(&dir.join(POLICY_DIR), &self.cfg, weights, &stats, self.tokenizer.backbone(), self.dtype)?;
         Ok(None)
     }
 

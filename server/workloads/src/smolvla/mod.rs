@@ -8,7 +8,7 @@ mod tokenizer;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, RwLock};
+use std::sync::RwLock;
 
 use anyhow::Context;
 use burn::tensor::Device;
@@ -25,8 +25,8 @@ use fedvla_learner::rollout::SimTasks;
 use fedvla_learner::tensors::to_named;
 use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
-use fedvla_policy::weights::{init_random, safetensors_bytes_as};
-use fedvla_policy::{HostTensor, NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
+use fedvla_policy::weights::{ParamStore, init_random, safetensors_bytes_as};
+use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
 use fedvla_sim::{Arrangement, TaskKind};
 
 use fedvla_aggregator::config::{ComputeDevice, EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
@@ -46,9 +46,10 @@ const SERVER_HELD_OUT: f64 = 0.15;
 /// Everything the server and the clients of one SmolVLA run share.
 pub struct SmolVlaWorkload {
     cfg: SmolVlaConfig,
-    /// The initial checkpoint, split: the backbone tensors no client trains, held once and shared by the exporters
-    /// (1.4 GB of f32 at the base size), and the trainable ones, the round-0 global model.
-    frozen: Arc<WeightMap>,
+    /// The initial checkpoint, split: the backbone tensors no client trains, on the CPU once (1.4 GB of f32 at the
+    /// base size) and shared, not copied, by the server's evaluator, the exporters and the volunteers' download;
+    /// and the trainable ones, the round-0 global model.
+    frozen: ParamStore,
     trainable: WeightMap,
     /// The dataset's normalisation statistics, and the policy's view of them.
     dataset_stats: NormalizationStats,
@@ -421,7 +422,7 @@ impl SmolVlaWorkload {
             dataset_stats,
             stats,
             cfg,
-            frozen: Arc::new(frozen),
+            frozen: ParamStore::upload_owned(frozen, &Device::flex(), false),
             trainable,
             tokenizer,
             export_dtype,
@@ -439,8 +440,9 @@ impl SmolVlaWorkload {
     pub fn centralized_trainer(&self, device: ComputeDevice) -> Result<SmolVlaTrainer, BoxError> {
         let examples = self.examples(&self.pooled_shard)?;
         let (device, backend) = training_device(device)?;
-        let weights: WeightMap = self.checkpoint().map(|(k, v)| (k.clone(), v.clone())).collect();
-        SmolVlaTrainer::new(&self.cfg, &weights, examples, self.seed, &device, backend)
+        let mut weights = self.frozen.to_host();
+        weights.extend(self.trainable.iter().map(|(k, v)| (k.clone(), v.clone())));
+        SmolVlaTrainer::new(&self.cfg, weights, examples, self.seed, &device, backend)
     }
 
     fn examples(&self, path: &Path) -> Result<ShardExamples, BoxError> {
@@ -458,11 +460,6 @@ impl SmolVlaWorkload {
     pub fn policy_config(&self) -> &SmolVlaConfig {
         &self.cfg
     }
-
-    /// Every tensor of the initial checkpoint, frozen and trainable.
-    fn checkpoint(&self) -> impl Iterator<Item = (&String, &HostTensor)> {
-        self.frozen.iter().chain(&self.trainable)
-    }
 }
 
 impl Workload for SmolVlaWorkload {
@@ -472,21 +469,23 @@ impl Workload for SmolVlaWorkload {
 
     fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError> {
         let examples = self.examples(&self.server_shard)?;
-        Ok(Box::new(HeldOutEvaluator::new(&self.cfg, self.checkpoint(), examples, &Device::flex())))
+        let cpu = Device::flex();
+        let store = self.frozen.overlaid(&ParamStore::upload(self.trainable.iter(), &cpu, false));
+        Ok(Box::new(HeldOutEvaluator::new(&self.cfg, &store, examples, &cpu)))
     }
 
     fn exporters(&self) -> Vec<Box<dyn ModelExporter>> {
         vec![
             Box::new(LeRobotExport {
                 cfg: self.cfg.clone(),
-                frozen: Arc::clone(&self.frozen),
+                frozen: self.frozen.clone(),
                 stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.clone(),
                 dtype: self.export_dtype,
             }),
             Box::new(SimRollouts {
                 cfg: self.cfg.clone(),
-                frozen: Arc::clone(&self.frozen),
+                frozen: self.frozen.clone(),
                 stats: RwLock::new(self.stats.clone()),
                 tokenizer: self.tokenizer.tokenizer(),
                 tasks: self.rollout_tasks.clone(),
@@ -500,7 +499,7 @@ impl Workload for SmolVlaWorkload {
             workload: WorkloadKind::Smolvla,
             shards: self.client_shards.clone(),
             policy: serde_json::json!({ "policy": self.cfg.to_lerobot_json(), "vlm": self.cfg.vlm_config_json() }),
-            frozen: Some(safetensors_bytes_as(&self.frozen, self.checkpoint_dtype)?.into()),
+            frozen: Some(safetensors_bytes_as(self.frozen.refs(), self.checkpoint_dtype)?.into()),
             rollout_tasks: rollout_tasks.to_wire(),
             signature: Some(self.signature.clone()),
             norm_stats: Some(self.dataset_stats.clone()),

@@ -58,6 +58,11 @@ impl ClientTransport for BrowserTransport {
         fetch_with_progress(&url, session, |_, _| {}).await.map_err(|e| format!("{e:?}").into())
     }
 
+    async fn fetch_model_deltas(&mut self, version: u64, from: u64, session: &str) -> Result<Vec<u8>, BoxError> {
+        let url = self.url(&routes::model_deltas(version, from));
+        fetch_with_progress(&url, session, |_, _| {}).await.map_err(|e| format!("{e:?}").into())
+    }
+
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
         let url = self.url(&routes::correction(round));
         let request = gloo_net::http::Request::get(&url)

@@ -1,6 +1,7 @@
 //! The wasm units in a real headless Chromium (`wasm-pack test --headless --chrome client-wasm`): the protocol
-//! codec, the SO-100 sim and its renderer, and SmolVLA training steps on the CPU backend in wasm, FedProx's and
-//! SCAFFOLD's among them (WebGPU: webgpu.rs).
+//! codec (and the model a volunteer rebuilds from the server's deltas, to the bits pinned natively), the SO-100 sim
+//! and its renderer, and SmolVLA training steps on the CPU backend in wasm, FedProx's and SCAFFOLD's among them
+//! (WebGPU: webgpu.rs).
 #![cfg(target_arch = "wasm32")]
 
 use burn::tensor::Device;
@@ -13,6 +14,9 @@ use wasm_bindgen_test::*;
 
 #[path = "../../shared/policy/tests/rules/mod.rs"]
 mod rules;
+
+#[path = "../../shared/federation/tests/deltas/mod.rs"]
+mod deltas;
 
 wasm_bindgen_test_configure!(run_in_browser);
 
@@ -40,6 +44,11 @@ fn an_update_survives_chunking_and_reassembly_in_wasm() {
         let payload = encode_delta_payload(&mut update.clone(), encoding);
         assert!(matches!(decode_payload(&payload, &spec, encoding), Ok(UpdateValues::Delta(_))), "{encoding:?}");
     }
+}
+
+#[wasm_bindgen_test]
+fn model_deltas_rebuild_the_servers_model_in_wasm_to_the_native_bits() {
+    assert_eq!(deltas::rebuilt_checksums(), deltas::PINNED);
 }
 
 #[wasm_bindgen_test]

@@ -197,6 +197,10 @@ impl ClientTransport for NativeTransport {
         self.get_with(&routes::model(version), session).await
     }
 
+    async fn fetch_model_deltas(&mut self, version: u64, from: u64, session: &str) -> Result<Vec<u8>, BoxError> {
+        self.get_with(&routes::model_deltas(version, from), session).await
+    }
+
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<Vec<u8>, BoxError> {
         self.get_with(&routes::correction(round), session).await
     }

@@ -302,6 +302,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             eval_request: false,
             rollout: None,
             update_encoding: fedvla_federation::UpdateEncoding::F32,
+            model_deltas: None,
         };
         let before = bar.position();
         let out = runtime

@@ -1,7 +1,8 @@
 //! Each bound on what connections send refuses at its limit with its own code, is counted in the console's
 //! snapshot, and leaves the server serving everyone else: joins per address per minute, messages per second,
-//! rollout videos per round and their size, and the memory held for uploads in flight. (The connection cap and
-//! the timeouts are trust.rs's; oversized frames and updates, faults.rs's.)
+//! rollout videos per round and their size, and the memory held for uploads in flight (an update waits for room,
+//! up to a round's deadline; a video does not). (The connection cap and the timeouts are trust.rs's; oversized
+//! frames and updates, faults.rs's.)
 
 mod common;
 
@@ -118,27 +119,23 @@ async fn rollout_videos_are_bounded_in_number_and_size() {
     assert!(!dir.join("big.webm").exists() && !dir.join("c.webm").exists());
 }
 
-#[tokio::test]
-async fn uploads_past_the_memory_budget_are_refused_until_the_one_in_flight_is_done() {
-    let update = linreg_head(0.2, -0.2);
-    let payload = encode_payload(&update).len();
+/// A server whose upload budget holds exactly one update of `payload` bytes (or one video of that size), with
+/// `first` holding it (its update header in, its frames not sent), and `second` sampled beside it.
+struct BudgetTaken {
+    handle: ServerHandle,
+    run_dir: RunDir,
+    first: RawClient,
+    second: RawClient,
+    round: u64,
+    _base: tempfile::TempDir,
+}
+
+async fn budget_taken(payload: usize, overrides: &str) -> BudgetTaken {
     let base = tempfile::tempdir().unwrap();
-    // Room for exactly one update (or one video of that size) at a time.
     let cfg = config(&format!(
         "num-server-rounds=1 min-clients=2 min-fit=1 client-rollout-episodes=1 max-video-bytes={payload} \
-         max-upload-memory-bytes={payload}"
+         max-upload-memory-bytes={payload} {overrides}"
     ));
-    let too_small = cfg.with_overrides(&format!("max-upload-memory-bytes={} max-video-bytes=1", payload - 1)).unwrap();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let other = tempfile::tempdir().unwrap();
-    let err = fedvla_app::server::start(
-        parts(too_small.clone(), RunDir::create(other.path(), &too_small).unwrap()),
-        listener,
-    )
-    .err()
-    .expect("a budget below one update refuses to start");
-    assert!(err.to_string().contains("cannot hold one update"), "{err}");
-
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let handle = start(cfg, run_dir.clone()).await;
     let (mut first, first_id, _) = RawClient::join_shard(&handle, "first", Some(0)).await;
@@ -159,16 +156,62 @@ async fn uploads_past_the_memory_budget_are_refused_until_the_one_in_flight_is_d
     let auth = format!("Bearer {session}");
     let (status, body) =
         http(&handle, "POST", &format!("/rollout/{round}/v.webm"), &[("authorization", &auth)], vec![1; payload]).await;
-    assert_eq!(status, 503, "{body}");
-    second.upload(round, &linreg_head(0.3, 0.3), linreg::train_examples(1) as u64).await;
-    expect_error(second.recv().await, ErrorCode::UploadBudget);
-    assert_eq!(refusals(&handle, ErrorCode::UploadBudget).await, 2, "the video and the update");
+    assert_eq!(status, 503, "a video does not wait for room: {body}");
+    assert_eq!(refusals(&handle, ErrorCode::UploadBudget).await, 1);
+    BudgetTaken { handle, run_dir, first, second, round, _base: base }
+}
 
-    // The update in flight goes on and is aggregated.
+#[tokio::test]
+async fn an_update_past_the_memory_budget_waits_until_the_one_in_flight_is_taken() {
+    let update = linreg_head(0.2, -0.2);
+    let payload = encode_payload(&update).len();
+    let cfg = config(&format!("max-upload-memory-bytes={} max-video-bytes=1", payload - 1));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let other = tempfile::tempdir().unwrap();
+    let err = fedvla_app::server::start(parts(cfg.clone(), RunDir::create(other.path(), &cfg).unwrap()), listener)
+        .err()
+        .expect("a budget below one update refuses to start");
+    assert!(err.to_string().contains("cannot hold one update"), "{err}");
+
+    let BudgetTaken { handle, run_dir, mut first, mut second, round, _base } = budget_taken(payload, "").await;
+    // The second update waits for room (its frames unread in the socket) instead of being refused ...
+    let other_update = linreg_head(0.3, 0.3);
+    second.upload(round, &other_update, linreg::train_examples(1) as u64).await;
+    // ... until the first's frames are in and the coordinator has taken it.
     for frame in fedvla_federation::codec::encode_update(&update, round, 64) {
         first.send_binary(frame).await;
     }
+    let metrics = fedvla_federation::RoundMetrics {
+        round,
+        examples: 1,
+        train_loss: 1.0,
+        seconds: 0.0,
+        bytes_up: 0,
+        bytes_down: 0,
+        download_bytes: 0,
+    };
+    first.send(&ClientMessage::Metrics(metrics)).await;
     let status = handle.finish().await.unwrap();
-    assert_eq!((status.completed_rounds, status.rejections.get(&ErrorCode::UploadBudget)), (1, Some(&1)));
-    assert_eq!(run_dir.load_model(1).unwrap(), update);
+    // The update waited: the run refused none (the video's refusal is the app's, counted on the console).
+    assert_eq!((status.completed_rounds, status.rejections.get(&ErrorCode::UploadBudget)), (1, None));
+    let line = fedvla_aggregator::records::read_metrics(run_dir.path()).unwrap().pop().unwrap();
+    assert_eq!(line.clients.iter().filter(|c| c.accepted).count(), 2, "both updates aggregated: {:?}", line.clients);
+    let (w0, w1) = (linreg::train_examples(0) as f32, linreg::train_examples(1) as f32);
+    let expected = update.zip_map(&other_update, |a, b| (a * w0 + b * w1) / (w0 + w1)).unwrap();
+    let model = run_dir.load_model(1).unwrap();
+    let diff = model.zip_map(&expected, |a, b| (a - b).abs()).unwrap();
+    assert!(diff.iter().flat_map(|(_, t)| &t.values).all(|d| *d < 1e-6), "{model:?} against {expected:?}");
+}
+
+#[tokio::test]
+async fn an_update_that_finds_no_room_within_a_rounds_deadline_is_refused() {
+    let update = linreg_head(0.2, -0.2);
+    let payload = encode_payload(&update).len();
+    // `first` stays connected, holding the budget: its leaving would end its reservation.
+    let BudgetTaken { handle, first: _first, mut second, round, .. } =
+        budget_taken(payload, "round-deadline-ms=300").await;
+    second.upload(round, &linreg_head(0.3, 0.3), linreg::train_examples(1) as u64).await;
+    expect_error(second.recv().await, ErrorCode::UploadBudget);
+    assert_eq!(refusals(&handle, ErrorCode::UploadBudget).await, 2, "the video and the update");
+    handle.kill();
 }

@@ -55,6 +55,7 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
             seconds: 0.0,
             bytes_up: 0,
             bytes_down: 0,
+            download_bytes: 0,
         }))
         .await;
     drop(leaver);

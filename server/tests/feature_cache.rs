@@ -24,6 +24,7 @@ fn task(round: u64) -> RoundTask {
         eval_request: false,
         rollout: None,
         update_encoding: UpdateEncoding::F32,
+        model_deltas: None,
     }
 }
 

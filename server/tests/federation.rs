@@ -8,7 +8,7 @@ use std::time::Duration;
 use common::*;
 use fedvla_aggregator::records::read_metrics;
 use fedvla_aggregator::run_dir::{RunDir, TRAINABLE_FILE};
-use fedvla_federation::codec::{HEADER_LEN, payload_len};
+use fedvla_federation::codec::{HEADER_LEN, model_deltas_len, payload_len};
 use fedvla_federation::protocol::INT8_BLOCK;
 use fedvla_federation::{TrainOutput, UpdateEncoding};
 use fedvla_workloads::linreg;
@@ -112,8 +112,9 @@ fn encoding_error_bound(encoding: UpdateEncoding, all: &[f32], index: usize) -> 
 }
 
 /// Each update encoding over loopback: the global model after round 1 is the example-weighted mean of what the
-/// clients trained, within the encoding's bound of every value; every update's bytes in `metrics.jsonl` are the
-/// encoding's payload in frames; and a compressed run still learns.
+/// clients trained, within the encoding's bound of every value (twice over for a compressed encoding: the clients'
+/// updates, then the server's of the global change, which volunteers download as deltas); every update's bytes in
+/// `metrics.jsonl` are the encoding's payload in frames; and a compressed run still learns.
 #[tokio::test]
 async fn every_update_encoding_aggregates_within_its_bound() {
     let spec = linreg::initial_model(0).spec();
@@ -135,6 +136,12 @@ async fn every_update_encoding_aggregates_within_its_bound() {
         }
         let global = run_dir.load_model(0).unwrap();
         let aggregate = run_dir.load_model(1).unwrap();
+        // The server's encoding of the global change: as the clients' for f16, bf16 and int8 (bounded here on the
+        // change as encoded, within 0.1% of the change itself), exact to an ulp for top-k, none for f32.
+        let served = match encoding {
+            UpdateEncoding::F32 | UpdateEncoding::Topk { .. } => UpdateEncoding::F32,
+            lossy => lossy,
+        };
         let exact = weighted_mean(&round_one);
         let total: f32 = round_one.iter().map(|u| u.examples as f32).sum();
         for (tensor, t) in exact.iter() {
@@ -151,12 +158,22 @@ async fn every_update_encoding_aggregates_within_its_bound() {
                         .collect()
                 })
                 .collect();
+            let change: Vec<f32> = aggregate
+                .get(tensor)
+                .unwrap()
+                .values
+                .iter()
+                .zip(&global.get(tensor).unwrap().values)
+                .map(|(a, g)| a - g)
+                .collect();
             for (i, want) in t.values.iter().enumerate() {
                 let bound: f32 = round_one
                     .iter()
                     .zip(&deltas)
                     .map(|(u, d)| u.examples as f32 / total * encoding_error_bound(encoding, d, i))
-                    .sum();
+                    .sum::<f32>()
+                    + encoding_error_bound(served, &change, i)
+                    + want.abs() * f32::EPSILON;
                 let got = aggregate.get(tensor).unwrap().values[i];
                 assert!(
                     (got - want).abs() <= bound * 1.001 + 1e-6,
@@ -175,6 +192,81 @@ async fn every_update_encoding_aggregates_within_its_bound() {
         }
         let loss = |i: usize| lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).unwrap().heldout_loss;
         assert!(loss(2) < loss(0), "{name}: held-out loss {} -> {}", loss(0), loss(2));
+    }
+}
+
+/// Downloads of the global model over loopback, in each update encoding: two of three volunteers a round (so some
+/// hold a model more than one version old), four rounds. Every model a volunteer trained from is the server's of
+/// that version bit for bit; the first download is the whole model, and each later one, of a compressed run, the
+/// chain of deltas since the version the volunteer held (f16, bf16, int8: the encoding's payload a round, while
+/// the chain is shorter than the model), smaller than the whole model after one round; an f32 run's are whole.
+#[tokio::test]
+async fn volunteers_download_deltas_and_hold_the_servers_model_bit_for_bit() {
+    let spec = linreg::initial_model(0).spec();
+    for name in ["f32", "f16", "bf16", "int8", "topk"] {
+        let base = tempfile::tempdir().unwrap();
+        let cfg =
+            config(&format!("update-encoding={name} topk-fraction=0.1 num-server-rounds=4 fraction-fit=0.5 min-fit=2"));
+        let encoding = cfg.encoding();
+        let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+        let handle = start(cfg.clone(), run_dir.clone()).await;
+        let mut clients = Vec::new();
+        for shard in 0..3 {
+            let (trainer, _) = TestTrainer::new(shard, None);
+            let (tasks, globals) = (trainer.tasks(), trainer.globals());
+            clients.push((format!("client-{shard}"), spawn_trainer(&handle, shard, trainer), tasks, globals));
+        }
+        let status = handle.finish().await.unwrap();
+        assert_eq!(status.completed_rounds, 4, "{name}");
+        assert!(status.rejections.is_empty(), "{name}: {:?}", status.rejections);
+        let lines = read_metrics(run_dir.path()).unwrap();
+        let whole = |version: u64| run_dir.load_model(version).unwrap().to_safetensors().unwrap().len() as u64;
+        let mut deltas_downloaded = 0;
+        for (client, task, tasks, globals) in clients {
+            task.await.unwrap().unwrap();
+            let (tasks, globals) = (tasks.lock().unwrap().clone(), globals.lock().unwrap().clone());
+            assert_eq!(tasks.len(), globals.len(), "{name}: one global model a task");
+            assert!(tasks.len() >= 2, "{name}: {client} trained {} rounds", tasks.len());
+            let mut held = None;
+            for (task, model) in tasks.iter().zip(&globals) {
+                let server = run_dir.load_model(task.model_version).unwrap();
+                assert_eq!(model.checksum(), server.checksum(), "{name}: {client}, version {}", task.model_version);
+                assert_eq!(model, &server, "{name}: {client}, version {}", task.model_version);
+                let record = lines[task.round as usize].clients.iter().find(|c| c.name == client).unwrap();
+                let downloaded = record.download_bytes.expect("the client reported its download");
+                let full = whole(task.model_version);
+                let expected = match (held, encoding) {
+                    (Some(held), _) if held == task.model_version => Some(0),
+                    (None, _) | (_, UpdateEncoding::F32) => Some(full),
+                    (Some(held), UpdateEncoding::Topk { .. }) => {
+                        assert!(
+                            downloaded <= full,
+                            "{name}: {client} downloaded {downloaded} bytes, the model is {full}"
+                        );
+                        (task.model_version == held + 1).then(|| {
+                            assert!(downloaded < full, "{name}: {client}'s delta of {downloaded} bytes, model {full}");
+                            downloaded
+                        })
+                    }
+                    (Some(held), lossy) => {
+                        let steps = (task.model_version - held) as usize;
+                        let chain = model_deltas_len(steps, steps * payload_len(&spec, lossy)) as u64;
+                        Some(if chain < full { chain } else { full })
+                    }
+                };
+                if let Some(expected) = expected {
+                    assert_eq!(downloaded, expected, "{name}: {client}, version {} held {held:?}", task.model_version);
+                }
+                deltas_downloaded += usize::from(held.is_some() && downloaded < full);
+                held = Some(task.model_version);
+            }
+        }
+        match encoding {
+            UpdateEncoding::F32 => assert_eq!(deltas_downloaded, 0, "f32 runs serve whole models"),
+            _ => assert!(deltas_downloaded >= 3, "{name}: {deltas_downloaded} downloads of deltas"),
+        }
+        let loss = |i: usize| lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).unwrap().heldout_loss;
+        assert!(loss(4) < loss(0), "{name}: held-out loss {} -> {}", loss(0), loss(4));
     }
 }
 

@@ -494,6 +494,7 @@ fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so
         eval_request: false,
         rollout: None,
         update_encoding: fedvla_federation::UpdateEncoding::F32,
+        model_deltas: None,
     };
     let second_round = |keep: bool| {
         let mut trainer = workload.centralized_trainer(ComputeDevice::Cpu).unwrap();

@@ -1,6 +1,7 @@
 //! The federation's aggregator, with no HTTP in it: the run configuration, the run directory and the records it
 //! holds (and the intervals its figures are stated with, [`stats`]), the round lifecycle ([`coordinator`]: sampling, collecting, aggregating through the strategy, evaluating,
-//! persisting), the operator's controls, the events it reports, and the registry of volunteers and their shards.
+//! persisting), the operator's controls, the events it reports, the registry of volunteers and their shards, and
+//! the memory budget of uploads on their way in ([`upload_budget`]).
 //! The HTTP/WebSocket app (`fedvla-app`) feeds it and watches it; workloads (`fedvla-workloads`) plug into it
 //! through [`parts::ServerParts`].
 
@@ -14,3 +15,4 @@ pub mod registry;
 pub mod run_dir;
 pub mod sessions;
 pub mod stats;
+pub mod upload_budget;

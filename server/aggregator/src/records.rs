@@ -207,6 +207,10 @@ pub struct ClientRecord {
     pub seconds: Option<f64>,
     pub bytes_up: Option<u64>,
     pub bytes_down: Option<u64>,
+    /// Bytes of its download of the round's global model, as it reported: the whole model, the deltas since the
+    /// version it held, or 0 when it held this one.
+    #[serde(default)]
+    pub download_bytes: Option<u64>,
     /// Its held-out evaluation of the model the round started from.
     pub eval_examples: Option<u64>,
     pub eval_loss: Option<f64>,

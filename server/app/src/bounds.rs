@@ -1,11 +1,11 @@
 //! The bounds on what strangers' input may cost the server beyond the listener's ([`crate::http`]): joins per
-//! address per minute ([`JoinLimiter`]), messages per second on one connection ([`MessageRate`]) and the memory
-//! held at once for uploads on their way in, updates and rollout videos together ([`UploadBudget`]). Each is a run
-//! configuration key; what they refuse is counted on the console.
+//! address per minute ([`JoinLimiter`]) and messages per second on one connection ([`MessageRate`]); the memory
+//! held at once for uploads on their way in is the aggregator's [`fedvla_aggregator::upload_budget`], since an
+//! update's reservation lasts until the coordinator has taken it. Each is a run configuration key; what they refuse
+//! is counted on the console.
 
 use std::collections::HashMap;
 use std::net::IpAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -86,53 +86,6 @@ impl MessageRate {
     }
 }
 
-/// The bytes the server holds at once for uploads on their way in (`max-upload-memory-bytes`): an update is
-/// reserved its announced size when its header arrives, a rollout video its length before its body is read; the
-/// reservation ends with the upload. Cheap to clone.
-#[derive(Clone)]
-pub struct UploadBudget {
-    limit: u64,
-    held: Arc<AtomicU64>,
-}
-
-/// Bytes reserved in an [`UploadBudget`], given back when dropped.
-#[derive(Debug)]
-pub struct Reservation {
-    bytes: u64,
-    held: Arc<AtomicU64>,
-}
-
-impl UploadBudget {
-    pub fn new(limit: u64) -> Self {
-        Self { limit, held: Arc::default() }
-    }
-
-    pub fn limit(&self) -> u64 {
-        self.limit
-    }
-
-    /// Reserves `bytes`, or `None` when that would take the uploads in flight past the limit.
-    pub fn reserve(&self, bytes: u64) -> Option<Reservation> {
-        self.held
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |held| {
-                held.checked_add(bytes).filter(|total| *total <= self.limit)
-            })
-            .ok()
-            .map(|_| Reservation { bytes, held: Arc::clone(&self.held) })
-    }
-
-    /// Bytes reserved now.
-    pub fn held(&self) -> u64 {
-        self.held.load(Ordering::Acquire)
-    }
-}
-
-impl Drop for Reservation {
-    fn drop(&mut self) {
-        self.held.fetch_sub(self.bytes, Ordering::AcqRel);
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -156,19 +109,5 @@ mod tests {
         tokio::time::advance(Duration::from_millis(200)).await;
         assert!(rate.allow() && rate.allow(), "two tokens back after 0.2 s");
         assert!(!rate.allow());
-    }
-
-    #[test]
-    fn reservations_fit_the_budget_and_end_when_dropped() {
-        let budget = UploadBudget::new(100);
-        let first = budget.reserve(60).unwrap();
-        assert!(budget.reserve(41).is_none());
-        let second = budget.reserve(40).unwrap();
-        assert_eq!(budget.held(), 100);
-        drop(first);
-        assert_eq!(budget.held(), 40);
-        assert!(budget.reserve(u64::MAX).is_none(), "no overflow");
-        drop(second);
-        assert_eq!(budget.held(), 0);
     }
 }

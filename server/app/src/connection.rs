@@ -3,7 +3,10 @@
 //! messages, update reassembly and validation. Generic over Sink/Stream so it runs over channels in unit tests.
 //! Bad input is answered with an `Error` message to this client and counted by the coordinator; only fatal errors
 //! close the connection (and any error before the join). The bounds of [`crate::bounds`] apply here: admissions
-//! per address, messages per second, and memory for the update on its way in.
+//! per address, messages per second; and the upload budget ([`fedvla_aggregator::upload_budget`]): an update that
+//! does not fit waits, its frames left unread in the socket, until the updates ahead of it are taken by the
+//! coordinator (at most a round's deadline, then it is refused), and its own reservation goes with it to the
+//! coordinator.
 
 use std::fmt::Display;
 use std::net::IpAddr;
@@ -24,8 +27,9 @@ use tokio::sync::mpsc;
 
 use fedvla_aggregator::coordinator::{Event, UpdateReceived};
 use fedvla_aggregator::sessions::{random_hex, same_secret};
+use fedvla_aggregator::upload_budget::Reservation;
 
-use crate::bounds::{MessageRate, Reservation};
+use crate::bounds::MessageRate;
 use crate::state::SocketState;
 use crate::volunteer;
 
@@ -114,7 +118,8 @@ enum Upload {
         header: AnnouncedUpdate,
         reassembler: Option<Reassembler>,
         bytes: u64,
-        /// The announced size, held in the upload budget until the update is decoded or refused.
+        /// The announced size, held in the upload budget until the coordinator has taken the decoded update (or it
+        /// is refused).
         reservation: Reservation,
     },
     /// A refused update: its remaining frames are dropped silently until the next control message.
@@ -389,11 +394,20 @@ where
                     self.upload = Upload::Discarding;
                     return self.refuse_codec(CodecError::Oversized { len: payload_bytes, limit }).await;
                 }
-                let Some(reservation) = self.state.uploads.reserve(payload_bytes) else {
+                // Back-pressure: while the budget is taken, this connection reads nothing more (its frames wait in
+                // the socket, then in the client).
+                let wait = self.state.upload_wait;
+                let reserved = tokio::select! {
+                    () = self.state.cancel.cancelled() => None,
+                    reserved = tokio::time::timeout(wait, self.state.uploads.reserve_when_free(payload_bytes)) => {
+                        reserved.ok().flatten()
+                    }
+                };
+                let Some(reservation) = reserved else {
                     self.upload = Upload::Discarding;
                     let message = format!(
-                        "an update of {payload_bytes} bytes does not fit in the {} bytes held for uploads in flight \
-                         now; send it again later",
+                        "an update of {payload_bytes} bytes found no room within {wait:?} in the {} bytes held for \
+                         uploads in flight",
                         self.state.uploads.limit()
                     );
                     return self.refuse(ErrorCode::UploadBudget, message).await;
@@ -448,8 +462,8 @@ where
             return Flow::Continue;
         }
         let bytes = *bytes;
-        // The reservation ends once the payload is decoded (or refused), when it goes out of scope.
-        let Upload::Receiving { reassembler: Some(reassembler), reservation: _reservation, .. } =
+        // The reservation goes with the decoded update to the coordinator, or ends here if it is refused.
+        let Upload::Receiving { reassembler: Some(reassembler), reservation, .. } =
             std::mem::replace(&mut self.upload, Upload::Idle)
         else {
             unreachable!("checked above")
@@ -470,6 +484,7 @@ where
                     claimed_examples: header.examples,
                     train_loss: header.train_loss,
                     bytes,
+                    reservation,
                 };
                 self.emit(Event::Update { client_id, update: Box::new(update) }).await
             }
@@ -536,13 +551,14 @@ mod tests {
     use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer, Volunteers};
     use fedvla_aggregator::run_dir::RunDir;
     use fedvla_aggregator::sessions::Sessions;
+    use fedvla_aggregator::upload_budget::UploadBudget;
     use fedvla_federation::codec::{DEFAULT_MAX_FRAME_BYTES, encode_payload, encode_update};
     use fedvla_federation::{Capabilities, Identity, NamedTensors, UpdateEncoding, UpdateLimits};
     use futures_util::{sink, stream};
     use tokio_util::sync::CancellationToken;
 
     use super::*;
-    use crate::bounds::{JoinLimiter, UploadBudget};
+    use crate::bounds::JoinLimiter;
 
     const KEEPALIVE: Duration = Duration::from_secs(20);
 
@@ -591,6 +607,7 @@ mod tests {
                 joins: JoinLimiter::new(60),
                 messages_per_second: 50,
                 uploads: UploadBudget::new(1 << 20),
+                upload_wait: Duration::from_secs(60),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
                 tx.send(msg).ok();

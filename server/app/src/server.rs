@@ -13,6 +13,7 @@ use fedvla_aggregator::parts::ServerParts;
 use fedvla_aggregator::registry::{Volunteers, read_allowed_keys};
 use fedvla_aggregator::run_dir::{ModelExporter, RunDirError, TrainableSafetensors};
 use fedvla_aggregator::sessions::{Sessions, random_token};
+use fedvla_aggregator::upload_budget::UploadBudget;
 use fedvla_federation::{TensorError, UpdateLimits};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -20,7 +21,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::app;
-use crate::bounds::{JoinLimiter, UploadBudget};
+use crate::bounds::JoinLimiter;
 use crate::console::ConsoleHub;
 use crate::http::{self, HttpLimits};
 use crate::state::{AppState, ConsoleState, SocketState, VolunteerState, WwwState};
@@ -123,6 +124,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             joins: JoinLimiter::new(config.joins_per_address_per_minute),
             messages_per_second: config.max_messages_per_second,
             uploads: uploads.clone(),
+            upload_wait: Duration::from_millis(config.round_deadline_ms),
         },
         volunteers: VolunteerState {
             volunteers,

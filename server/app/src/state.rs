@@ -11,11 +11,12 @@ use fedvla_aggregator::coordinator::{Event, PublishedModel};
 use fedvla_aggregator::registry::Volunteers;
 use fedvla_aggregator::run_dir::RunDir;
 use fedvla_aggregator::sessions::Sessions;
+use fedvla_aggregator::upload_budget::UploadBudget;
 use fedvla_federation::{TensorSpec, UpdateEncoding, UpdateLimits};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-use crate::bounds::{JoinLimiter, UploadBudget};
+use crate::bounds::JoinLimiter;
 use crate::console::ConsoleHub;
 
 #[derive(Clone)]
@@ -51,6 +52,9 @@ pub struct SocketState {
     pub messages_per_second: u32,
     /// Memory for updates on their way in, shared with the videos'.
     pub uploads: UploadBudget,
+    /// How long an update waits for room in the budget before it is refused: a round's deadline, past which it
+    /// could not count anyway.
+    pub upload_wait: Duration,
 }
 
 /// The volunteers' HTTP routes': shards, frozen weights, the tokenizer, the global model, SCAFFOLD corrections,

@@ -1,6 +1,7 @@
 //! What volunteers download and upload over HTTP, beside the WebSocket that admitted them (and gave them their
 //! setup): the run's tokenizer (for a volunteer that tokenizes its own dataset's tasks), the shard and its
-//! manifest, the frozen weights (named by content hash so browsers cache them forever), the global model, a
+//! manifest, the frozen weights (named by content hash so browsers cache them forever), the global model (whole,
+//! or as the deltas since a version the volunteer holds, `GET /model/{version}/deltas/{from}`), a
 //! SCAFFOLD client's correction for its round (`GET /scaffold/{round}`), and rollout videos
 //! (`POST /rollout/{round}/{file}`, for the round that asked, within `max-rollout-videos`, `max-video-bytes` and
 //! the upload budget; each refusal counted on the console). Every route answers only a request presenting an
@@ -34,6 +35,7 @@ pub fn routes() -> Router<AppState> {
         .route(routes::SHARD, get(get_shard))
         .route(routes::SHARD_MANIFEST, get(get_shard_manifest))
         .route(routes::MODEL, get(get_model))
+        .route(routes::MODEL_DELTAS, get(get_model_deltas))
         .route(routes::CORRECTION, get(get_correction))
         .route(routes::ROLLOUT_VIDEO, post(post_video))
 }
@@ -139,6 +141,24 @@ async fn get_model(
     let bytes =
         model.bytes_of(version).ok_or(ServerError::ModelVersion { requested: version, current: model.version })?;
     Ok(([(CONTENT_TYPE, "application/octet-stream")], bytes.clone()).into_response())
+}
+
+/// The chain of deltas taking version `from` to `version`, while the server keeps them (tasks say since when).
+async fn get_model_deltas(
+    _: Session,
+    Path((version, from)): Path<(u64, u64)>,
+    State(state): State<VolunteerState>,
+) -> Result<Response, ServerError> {
+    let model = state.model.borrow().clone();
+    let chain = model.deltas(version, from).ok_or_else(|| {
+        ServerError::NotFound(format!(
+            "no deltas from version {from} to {version}: this server keeps those since {:?} to version {}; download \
+             the whole model",
+            model.deltas_since(),
+            model.version
+        ))
+    })?;
+    Ok(([(CONTENT_TYPE, "application/octet-stream")], chain).into_response())
 }
 
 /// The SCAFFOLD correction `c - c_i` the round's task offered the asking client (safetensors).

@@ -1,6 +1,8 @@
 //! `fedvla bench`: what a client-round costs on the wire and in the codec, measured from the codec itself.
 //! For each model size (LeRobot's default freezing: the action expert and its projections train), the exact
-//! bytes of one update under every encoding, frames included; then, at one size, how fast the client encodes
+//! bytes of one update under every encoding, frames included, and of a volunteer's download of the global model
+//! (whole, or as the round's delta in the encoding, `fedvla_federation::codec::encode_model_delta`); then, at one
+//! size, how fast the client encodes
 //! and the server decodes a delta of random values; then, per size, training samples/s on the CPU with and
 //! without the frozen-feature cache (each row's context keys and values computed once, then reused); then, at one
 //! size, how fast FedAvg folds updates (GB/s of f32 updates) and a real server's resident memory over a round of
@@ -10,7 +12,7 @@ use std::time::Instant;
 
 use burn::tensor::Device;
 use fedvla_federation::codec::{
-    DEFAULT_MAX_FRAME_BYTES, HEADER_LEN, decode_payload, encode_delta_payload, payload_len,
+    DEFAULT_MAX_FRAME_BYTES, HEADER_LEN, decode_payload, encode_delta_payload, model_deltas_len, payload_len,
 };
 use fedvla_federation::{FedAvg, NamedTensors, Strategy, TensorSpec, UpdateEncoding};
 use fedvla_policy::vlm_with_expert::ContextKv;
@@ -32,6 +34,10 @@ pub struct Args {
     /// Top-k's fraction.
     #[arg(long, default_value_t = 0.01)]
     topk_fraction: f64,
+    /// Clients a round whose top-k updates make a top-k run's global change (FedAvg's holds at most their union of
+    /// values), for its download's delta.
+    #[arg(long, default_value_t = 3)]
+    topk_clients: usize,
     /// Model sizes whose training step is timed with and without the frozen-feature cache ("" skips it; `base`
     /// takes minutes a step on two cores).
     #[arg(long, value_delimiter = ',', default_value = "tiny,small")]
@@ -94,6 +100,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
+    download_table(&args.sizes, &encodings, args.topk_clients)?;
     if !args.time_size.is_empty() {
         codec_speed(&args.time_size, &encodings)?;
     }
@@ -115,6 +122,51 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A volunteer's download of the global model per round: the whole model (f32 safetensors, what f32 runs and a
+/// volunteer holding no earlier version get), or, holding the last version, the round's delta as one chain. Top-k's
+/// delta holds every nonzero value of FedAvg's change, at most the union of `topk_clients` clients' top-k values.
+fn download_table(sizes: &[String], encodings: &[UpdateEncoding], topk_clients: usize) -> anyhow::Result<()> {
+    println!(
+        "\nThe frozen tensors, downloaded once, in the checkpoint's dtype (tensor data, without the safetensors header):"
+    );
+    println!("| size | frozen values | f32 (random init) | bf16 (`smolvla_base`) |");
+    println!("|---|---|---|---|");
+    for size in sizes {
+        let cfg = SmolVlaConfig::preset(size)?;
+        let frozen: usize = cfg.param_specs().iter().filter(|p| !p.trainable).map(|p| p.numel()).sum();
+        println!("| {size} | {frozen} | {:.1} MB | {:.1} MB |", 4.0 * frozen as f64 / 1e6, 2.0 * frozen as f64 / 1e6);
+    }
+    println!("\nDownload per client-round of a volunteer that holds the last version, LeRobot's default freezing:");
+    println!("| size | whole model | encoding | bytes | MB | of the whole model |");
+    println!("|---|---|---|---|---|---|");
+    for size in sizes {
+        let spec = trainable_spec(size)?;
+        let mut zeros = NamedTensors::new();
+        for (name, shape) in spec.iter() {
+            zeros.insert(name, shape.to_vec(), vec![0.0; shape.iter().product()])?;
+        }
+        let whole = zeros.to_safetensors()?.len();
+        drop(zeros);
+        for &encoding in encodings.iter().filter(|e| **e != UpdateEncoding::F32) {
+            let (name, payload) = match encoding {
+                UpdateEncoding::Topk { fraction } => {
+                    let union = (fraction * topk_clients as f64).min(1.0);
+                    let payload = payload_len(&spec, UpdateEncoding::Topk { fraction: union });
+                    (format!("topk {}%, {topk_clients} clients (at most)", fraction * 100.0), payload)
+                }
+                other => (other.name().to_owned(), payload_len(&spec, other)),
+            };
+            let bytes = model_deltas_len(1, payload);
+            println!(
+                "| {size} | {whole} | {name} | {bytes} | {:.2} | {:.3} |",
+                bytes as f64 / 1e6,
+                bytes as f64 / whole as f64
+            );
+        }
+    }
+    Ok(())
+}
+
 /// FedAvg's fold throughput over `clients` updates of every tensor of `size`, one thread, and a real server's
 /// resident memory over a round of `clients` simulated volunteers.
 fn aggregation(size: &str, clients: usize) -> anyhow::Result<()> {
@@ -132,7 +184,7 @@ fn aggregation(size: &str, clients: usize) -> anyhow::Result<()> {
     let model_bytes = 4 * global.iter().map(|(_, t)| t.values.len()).sum::<usize>();
     let gb = (clients * model_bytes) as f64 / 1e9;
     let output = std::env::temp_dir().join(format!("fedvla-bench-aggregation-{}", std::process::id()));
-    let r = measure_round(&global, clients, &output)?;
+    let r = measure_round(&std::env::current_exe()?, size, clients, &output)?;
     std::fs::remove_dir_all(&output)?;
     let mb = |b: u64| b as f64 / 1e6;
     println!(

@@ -1,6 +1,7 @@
 //! Subcommands. To add one: create `src/cmd/<name>.rs` with `pub struct Args` (clap::Args) and
 //! `pub fn run(args: Args) -> anyhow::Result<()>`, then add a variant to [`Command`] and an arm to [`run`].
 
+mod aggregation_server;
 mod bench;
 mod eval;
 mod experiment;
@@ -40,6 +41,9 @@ pub enum Command {
     Loadtest(loadtest::Args),
     /// Measure what a client-round costs: update bytes per encoding and model size, codec throughput.
     Bench(bench::Args),
+    /// The server of one measured aggregation round, a child process of `bench` (and of its test).
+    #[command(hide = true)]
+    AggregationServer(aggregation_server::Args),
     /// Check SmolVLA against a LeRobot golden fixture, tensor by tensor.
     Parity(parity::Args),
     /// Write a full-size rehearsal's inputs without a download: a smolvla_base-shaped checkpoint of seeded random
@@ -62,6 +66,7 @@ pub fn run(command: Command) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(args),
         Command::Parity(args) => parity::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::AggregationServer(args) => aggregation_server::run(args),
         Command::Loadtest(args) => loadtest::run(args),
         Command::RehearsalInputs(args) => rehearsal::run(args),
         Command::GenData(args) => gen_data::run(args),

@@ -73,12 +73,16 @@ pub type Recorded = Arc<Mutex<Vec<(u64, TrainOutput)>>>;
 /// Every task a client was given.
 pub type Tasks = Arc<Mutex<Vec<RoundTask>>>;
 
+/// Every global model a client was set to train from, in order (one a task).
+pub type Globals = Arc<Mutex<Vec<NamedTensors>>>;
+
 /// The linreg trainer, recording its tasks and outputs, optionally hanging (a straggler) from some round on, and
 /// optionally training only when the test hands out a permit.
 pub struct TestTrainer {
     inner: LinRegTrainer,
     recorded: Recorded,
     tasks: Tasks,
+    globals: Globals,
     hang_from_round: Option<u64>,
     gate: Option<Arc<Semaphore>>,
 }
@@ -90,6 +94,7 @@ impl TestTrainer {
             inner: LinRegTrainer::new(shard, Partitioning::ByEpisode),
             recorded: recorded.clone(),
             tasks: Tasks::default(),
+            globals: Globals::default(),
             hang_from_round,
             gate: None,
         };
@@ -105,6 +110,10 @@ impl TestTrainer {
     pub fn tasks(&self) -> Tasks {
         self.tasks.clone()
     }
+
+    pub fn globals(&self) -> Globals {
+        self.globals.clone()
+    }
 }
 
 impl LocalTrainer for TestTrainer {
@@ -113,6 +122,7 @@ impl LocalTrainer for TestTrainer {
     }
 
     fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
+        self.globals.lock().unwrap().push(global.clone());
         self.inner.set_global(global)
     }
 
@@ -293,7 +303,15 @@ impl RawClient {
         for frame in fedvla_federation::codec::encode_update(tensors, round, 64) {
             self.send_binary(frame).await;
         }
-        let metrics = RoundMetrics { round, examples, train_loss: 1.0, seconds: 0.0, bytes_up: 0, bytes_down: 0 };
+        let metrics = RoundMetrics {
+            round,
+            examples,
+            train_loss: 1.0,
+            seconds: 0.0,
+            bytes_up: 0,
+            bytes_down: 0,
+            download_bytes: 0,
+        };
         self.send(&ClientMessage::Metrics(metrics)).await;
     }
 

@@ -307,6 +307,7 @@ mod tests {
             eval_request: false,
             rollout: None,
             update_encoding: fedvla_federation::UpdateEncoding::F32,
+            model_deltas: None,
         }
     }
 

@@ -6,13 +6,13 @@
 
 use std::future::Future;
 
-use crate::codec::{encode_delta_payload, encode_frames, encode_payload};
+use crate::codec::{apply_model_deltas, encode_delta_payload, encode_frames, encode_payload};
 use crate::data_report::{DataReport, NormalizationStats};
-use crate::error::{BoxError, TensorError};
+use crate::error::{BoxError, CodecError, TensorError};
 use crate::identity::Identity;
 use crate::protocol::{
-    Capabilities, ClientMessage, ErrorCode, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RoundMetrics, RoundTask,
-    ServerMessage, UpdateEncoding, VolunteerSetup,
+    Capabilities, ClientMessage, ErrorCode, ModelDeltas, PROTOCOL_VERSION, RolloutEpisode, RolloutRequest,
+    RoundMetrics, RoundTask, ServerMessage, UpdateEncoding, VolunteerSetup,
 };
 use crate::tensors::NamedTensors;
 
@@ -100,6 +100,15 @@ pub trait ClientTransport {
     /// Downloads the global trainable tensors of `version` as safetensors bytes (`GET /model/{version}`,
     /// authorised by the session token from the admission).
     fn fetch_model(&mut self, version: u64, session: &str) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
+
+    /// Downloads the chain of deltas taking the global model of version `from` to `version`
+    /// (`GET /model/{version}/deltas/{from}`, authorised by the session token).
+    fn fetch_model_deltas(
+        &mut self,
+        version: u64,
+        from: u64,
+        session: &str,
+    ) -> impl Future<Output = Result<Vec<u8>, BoxError>>;
 
     /// Downloads this client's SCAFFOLD correction for `round` as safetensors bytes (`GET /scaffold/{round}`,
     /// authorised by the session token).
@@ -203,6 +212,13 @@ pub enum ClientError {
     Protocol(String),
     #[error("global model version {version}: {source}")]
     Model { version: u64, source: TensorError },
+    #[error("global model version {version} from the deltas since version {from}: {source}")]
+    ModelDeltas { version: u64, from: u64, source: CodecError },
+    #[error(
+        "global model version {version} rebuilt from the deltas since version {from} has checksum {got:#010x}, the \
+         server's {expected:#010x}"
+    )]
+    ModelChecksum { version: u64, from: u64, expected: u32, got: u32 },
     #[error("SCAFFOLD correction of round {round}: {source}")]
     Correction { round: u64, source: TensorError },
     #[error("connection closed before the run finished")]
@@ -253,8 +269,9 @@ fn unexpected(expected: &str, got: ServerMessage) -> ClientError {
     }
 }
 
-/// Joins on a connection [`identify`] admitted, then for each task: fetches the model if its version changed,
-/// trains, uploads the update and metrics. Returns when the server says the run is finished.
+/// Joins on a connection [`identify`] admitted, then for each task: fetches the model if its version changed (as
+/// the deltas from the version it holds where the task offers them, else whole), trains, uploads the update and
+/// metrics. Returns when the server says the run is finished.
 pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
     transport: &mut T,
     trainer: &mut L,
@@ -278,10 +295,16 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                 on_event(ClientEvent::Task { round: task.round, local_steps: task.local_steps });
                 let start = link.transport.now_seconds();
                 let bytes_before = link.bytes_up;
-                let tensors = match global.take() {
-                    Some((version, tensors)) if version == task.model_version => tensors,
-                    _ => link.fetch_model(task.model_version, session).await?,
+                let down_before = link.bytes_down;
+                let version = task.model_version;
+                let tensors = match (global.take(), task.model_deltas) {
+                    (Some((held, tensors)), _) if held == version => tensors,
+                    (Some((held, tensors)), Some(deltas)) if (deltas.since..version).contains(&held) => {
+                        link.fetch_model_deltas(version, (held, &tensors), deltas, session).await?
+                    }
+                    _ => link.fetch_model(version, session).await?,
                 };
+                let download_bytes = link.bytes_down - down_before;
                 trainer.set_global(&tensors).map_err(ClientError::Trainer)?;
                 let global = &global.insert((task.model_version, tensors)).1;
                 let correction = match task.strategy.control_variates {
@@ -358,6 +381,7 @@ pub async fn run_client<T: ClientTransport, L: LocalTrainer>(
                     seconds,
                     bytes_up: link.bytes_up,
                     bytes_down: link.bytes_down,
+                    download_bytes,
                 };
                 link.send(&ClientMessage::Metrics(metrics)).await?;
                 summary.rounds_trained += 1;
@@ -442,6 +466,28 @@ impl<T: ClientTransport> Link<'_, T> {
         let bytes = self.transport.fetch_model(version, session).await.map_err(ClientError::Transport)?;
         self.bytes_down += bytes.len() as u64;
         checked_tensors(&bytes).map_err(|source| ClientError::Model { version, source })
+    }
+
+    /// The model of `version` from the one held (its version and tensors) and the deltas between them, checked
+    /// against the server's checksum of it.
+    async fn fetch_model_deltas(
+        &mut self,
+        version: u64,
+        (from, held): (u64, &NamedTensors),
+        deltas: ModelDeltas,
+        session: &str,
+    ) -> Result<NamedTensors, ClientError> {
+        let chain = self.transport.fetch_model_deltas(version, from, session).await.map_err(ClientError::Transport)?;
+        self.bytes_down += chain.len() as u64;
+        let model = apply_model_deltas(held, from, version, &chain).map_err(|source| ClientError::ModelDeltas {
+            version,
+            from,
+            source,
+        })?;
+        match model.checksum() {
+            got if got == deltas.checksum => Ok(model),
+            got => Err(ClientError::ModelChecksum { version, from, expected: deltas.checksum, got }),
+        }
     }
 
     async fn fetch_correction(&mut self, round: u64, session: &str) -> Result<NamedTensors, ClientError> {

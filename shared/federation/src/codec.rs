@@ -8,10 +8,13 @@
 //! Each binary WebSocket frame is a [`FrameHeader`] of [`HEADER_LEN`] bytes followed by one chunk of the payload:
 //! magic `FVLA`, `u16` protocol version, `u64` round, `u32` chunk index, `u32` chunk count, `u64` payload length,
 //! `u32` CRC32 of the whole payload, `u32` chunk length.
+//!
+//! Downloads of the global model by a client that holds an earlier version come as a chain of the rounds' deltas
+//! ([`encode_model_delta`], [`encode_model_deltas`], [`apply_model_deltas`]), each one such a payload.
 
 use crate::error::{CodecError, TensorError};
 use crate::protocol::{PROTOCOL_VERSION, UpdateEncoding};
-use crate::quantize::{encoded_len, read_values, write_values};
+use crate::quantize::{encoded_len, read_values, write_nonzero, write_values};
 use crate::reader::Reader;
 use crate::tensors::{NamedTensors, TensorSpec};
 
@@ -208,6 +211,107 @@ pub fn decode_payload(payload: &[u8], spec: &TensorSpec, encoding: UpdateEncodin
         UpdateEncoding::F32 => UpdateValues::Model(out),
         _ => UpdateValues::Delta(out),
     })
+}
+
+/// The encoding a download's delta payload of tag `tag` is read in: top-k's holds every value it sends, so it is read
+/// at a fraction of 1. f32 is no delta encoding of downloads.
+fn model_delta_encoding(tag: u8) -> Result<UpdateEncoding, CodecError> {
+    if tag == encoding_tag(UpdateEncoding::F32) {
+        return Err(CodecError::Malformed("a model delta in f32: f32 runs serve the model whole".into()));
+    }
+    [UpdateEncoding::F16, UpdateEncoding::Bf16, UpdateEncoding::Int8, UpdateEncoding::Topk { fraction: 1.0 }]
+        .into_iter()
+        .find(|e| encoding_tag(*e) == tag)
+        .ok_or_else(|| CodecError::Malformed(format!("unknown encoding tag {tag}")))
+}
+
+/// The payload a download serves of the change from the global model `old` to the round's aggregate `new`, under the
+/// run's update `encoding`, and the model a client holding `old` rebuilds from it: `old` plus the decoded payload,
+/// value by value in f32 ([`UpdateValues::into_model`]). The server makes that model its next global model, so a
+/// client that applies the payload ends up with the server's model bit for bit, natively as in wasm: the decoders'
+/// conversions and IEEE f32 adds give the same bits everywhere, and the server's model is made by the same code
+/// from the same bytes (decoding what it serves rather than reusing the values it encoded). For f16, bf16 and int8
+/// this is a server-side quantization of the global update, within the encoding's bound of each round's change; for
+/// top-k the payload holds every nonzero value of the change exactly ([`write_nonzero`]: top-k of an aggregate
+/// would drop most of it for good) and the model is `old + (new - old)`, within an ulp of `new`.
+///
+/// `Ok(None)` for f32: its delta is as large as the model, which f32 runs serve whole, their aggregate untouched.
+pub fn encode_model_delta(
+    old: &NamedTensors,
+    new: &NamedTensors,
+    encoding: UpdateEncoding,
+) -> Result<Option<(Vec<u8>, NamedTensors)>, CodecError> {
+    if encoding == UpdateEncoding::F32 {
+        return Ok(None);
+    }
+    let mut delta = new.zip_map(old, |n, o| n - o)?;
+    let payload = match encoding {
+        UpdateEncoding::Topk { .. } => {
+            let spec = delta.spec();
+            let mut out = vec![encoding_tag(encoding)];
+            out.extend_from_slice(&(delta.len() as u32).to_le_bytes());
+            for ((name, shape), (_, t)) in spec.iter().zip(delta.iter()) {
+                write_tensor_header(&mut out, name, shape);
+                write_nonzero(&t.values, &mut out);
+            }
+            out
+        }
+        _ => encode_delta_payload(&mut delta, encoding),
+    };
+    let model = apply_model_delta(old, &payload)?;
+    Ok(Some((payload, model)))
+}
+
+/// `held` plus one delta payload of [`encode_model_delta`], read in its own encoding.
+fn apply_model_delta(held: &NamedTensors, payload: &[u8]) -> Result<NamedTensors, CodecError> {
+    let tag = *payload.first().ok_or(CodecError::Truncated { needed: 1, got: 0 })?;
+    let delta = decode_payload(payload, &held.spec(), model_delta_encoding(tag)?)?;
+    Ok(delta.into_model(held)?)
+}
+
+/// Bytes of a chain of `steps` model deltas whose payloads take `payload_bytes` together ([`encode_model_deltas`]).
+pub fn model_deltas_len(steps: usize, payload_bytes: usize) -> usize {
+    16 + 8 * steps + payload_bytes
+}
+
+/// The chain of model deltas from version `from` as served: `u64` from, `u64` to (`from` plus the number of
+/// payloads), then per payload, in order (the first takes `from` to `from + 1`), its `u64` length and bytes.
+pub fn encode_model_deltas<'a>(from: u64, payloads: impl ExactSizeIterator<Item = &'a [u8]>) -> Vec<u8> {
+    let to = from + payloads.len() as u64;
+    let mut out = Vec::new();
+    out.extend_from_slice(&from.to_le_bytes());
+    out.extend_from_slice(&to.to_le_bytes());
+    for payload in payloads {
+        out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+        out.extend_from_slice(payload);
+    }
+    out
+}
+
+/// The global model of version `to` from `held`, of version `from`, and the chain of deltas served between them
+/// ([`encode_model_deltas`]): each payload read in its own encoding and added in order, as the server made each
+/// version. Refuses a chain between other versions, a payload longer than any delta of `held`'s tensors, one that
+/// does not decode to a finite delta of exactly those tensors, and bytes after the last payload.
+pub fn apply_model_deltas(held: &NamedTensors, from: u64, to: u64, chain: &[u8]) -> Result<NamedTensors, CodecError> {
+    let mut r = Reader::new(chain);
+    let got = (r.u64()?, r.u64()?);
+    if got != (from, to) || to <= from {
+        return Err(CodecError::DeltaVersions { expected: (from, to), got });
+    }
+    // Top-k's layout with every value kept is the longest any delta encoding writes.
+    let limit = payload_len(&held.spec(), UpdateEncoding::Topk { fraction: 1.0 }) as u64;
+    let mut model = held.clone();
+    for _ in from..to {
+        let len = r.u64()?;
+        if len > limit {
+            return Err(CodecError::Oversized { len, limit });
+        }
+        model = apply_model_delta(&model, r.bytes(len as usize)?)?;
+    }
+    if r.remaining() != 0 {
+        return Err(CodecError::Malformed(format!("{} trailing bytes after the last model delta", r.remaining())));
+    }
+    Ok(model)
 }
 
 /// Splits an encoded payload into frames of at most `max_frame_bytes` (header included).
@@ -493,5 +597,95 @@ mod tests {
         huge.get_mut("expert.b").unwrap().values[0] = f32::MAX;
         let overflow = UpdateValues::Delta(huge).into_model(&global.zip_map(&global, |_, _| f32::MAX).unwrap());
         assert!(matches!(overflow, Err(TensorError::NonFinite { .. })));
+    }
+
+    /// Three rounds of a server that publishes each aggregate as [`encode_model_delta`] makes it: a client holding
+    /// any earlier version rebuilds the last one bit for bit from the chain, in fewer bytes than the model, and
+    /// each version is within the encoding's bound of its aggregate.
+    #[test]
+    fn model_deltas_rebuild_the_servers_models_bit_for_bit() {
+        let v0 = tensors();
+        let model_bytes = v0.to_safetensors().unwrap().len();
+        for encoding in
+            [UpdateEncoding::F16, UpdateEncoding::Bf16, UpdateEncoding::Int8, UpdateEncoding::Topk { fraction: 0.01 }]
+        {
+            let mut server = vec![v0.clone()];
+            let mut payloads = Vec::new();
+            for round in 1..=3u64 {
+                let old = server.last().unwrap();
+                // An aggregate that moves every fifth value (a top-k run's is sparse), by amounts of many scales.
+                let mut aggregate = old.clone();
+                for (_, values) in aggregate.iter_mut() {
+                    for (i, v) in values.iter_mut().enumerate().filter(|(i, _)| i % 5 == round as usize % 5) {
+                        *v += (i as f32 * 0.37 + round as f32).sin() * 10f32.powi(-(i as i32 % 4));
+                    }
+                }
+                let (payload, model) = encode_model_delta(old, &aggregate, encoding).unwrap().unwrap();
+                for ((_, m), ((_, a), (_, o))) in model.iter().zip(aggregate.iter().zip(old.iter())) {
+                    let largest = a.values.iter().zip(&o.values).fold(0f32, |l, (a, o)| l.max((a - o).abs()));
+                    for (m, a) in m.values.iter().zip(&a.values) {
+                        assert!((m - a).abs() <= largest / 254.0 * 1.01 + 1e-6, "{encoding:?}: {m} against {a}");
+                    }
+                }
+                assert!(model_deltas_len(1, payload.len()) < model_bytes, "{encoding:?}: {} bytes", payload.len());
+                payloads.push(payload);
+                server.push(model);
+            }
+            for from in 0..3 {
+                let chain = encode_model_deltas(from, payloads[from as usize..].iter().map(Vec::as_slice));
+                let rebuilt = apply_model_deltas(&server[from as usize], from, 3, &chain).unwrap();
+                assert_eq!(rebuilt.checksum(), server[3].checksum(), "{encoding:?} from version {from}");
+                assert_eq!(rebuilt, server[3]);
+            }
+        }
+        assert!(encode_model_delta(&v0, &v0, UpdateEncoding::F32).unwrap().is_none(), "f32 runs serve models whole");
+    }
+
+    #[test]
+    fn malformed_or_mismatched_model_deltas_are_refused_with_typed_errors() {
+        let v0 = tensors();
+        let v1 = v0.zip_map(&v0, |g, _| g + 0.5).unwrap();
+        let (payload, model) = encode_model_delta(&v0, &v1, UpdateEncoding::Int8).unwrap().unwrap();
+        let chain = encode_model_deltas(0, [payload.as_slice()].into_iter());
+        assert_eq!(apply_model_deltas(&v0, 0, 1, &chain).unwrap(), model);
+        let apply = |chain: &[u8]| apply_model_deltas(&v0, 0, 1, chain).unwrap_err();
+
+        assert_eq!(
+            apply_model_deltas(&v0, 1, 2, &chain).unwrap_err(),
+            CodecError::DeltaVersions { expected: (1, 2), got: (0, 1) }
+        );
+        let backwards = encode_model_deltas(1, std::iter::empty());
+        assert!(matches!(apply_model_deltas(&v0, 1, 1, &backwards), Err(CodecError::DeltaVersions { .. })));
+        assert!(matches!(apply(&chain[..chain.len() - 1]), CodecError::Truncated { .. }));
+        let mut trailing = chain.clone();
+        trailing.push(0);
+        assert!(matches!(apply(&trailing), CodecError::Malformed(m) if m.contains("trailing")));
+        let mut long = chain.clone();
+        long[16..24].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(matches!(apply(&long), CodecError::Oversized { .. }));
+        // An update's f32 payload, and an unknown encoding, are no model delta.
+        let f32_chain = encode_model_deltas(0, [encode_payload(&v1).as_slice()].into_iter());
+        assert!(matches!(apply(&f32_chain), CodecError::Malformed(m) if m.contains("f32")));
+        let mut unknown = payload.clone();
+        unknown[0] = 9;
+        assert!(matches!(apply(&encode_model_deltas(0, [unknown.as_slice()].into_iter())), CodecError::Malformed(_)));
+        // A delta of other tensors than the held ones.
+        let mut held = v0.clone();
+        held.insert("expert.extra", vec![2], vec![0.0; 2]).unwrap();
+        assert_eq!(apply_model_deltas(&held, 0, 1, &chain).unwrap_err().code(), ErrorCode::MissingTensor);
+        let mut reshaped = NamedTensors::new();
+        reshaped.insert("expert.w", vec![150], v0.get("expert.w").unwrap().values.clone()).unwrap();
+        reshaped.insert("expert.b", vec![3], vec![0.0; 3]).unwrap();
+        assert_eq!(apply_model_deltas(&reshaped, 0, 1, &chain).unwrap_err().code(), ErrorCode::ShapeMismatch);
+        // A change that is not finite is refused where the server makes it, and where a client would apply it.
+        let mut nan = v1.clone();
+        nan.get_mut("expert.b").unwrap().values[1] = f32::NAN;
+        let err = encode_model_delta(&v0, &nan, UpdateEncoding::Topk { fraction: 0.1 }).unwrap_err();
+        assert_eq!(err, CodecError::Tensor(TensorError::NonFinite { name: "expert.b".into(), index: 1 }));
+        let mut overflow = v0.clone();
+        overflow.get_mut("expert.b").unwrap().values[0] = f32::MAX;
+        let (big, _) = encode_model_delta(&v0, &overflow, UpdateEncoding::Topk { fraction: 0.1 }).unwrap().unwrap();
+        let err = apply_model_deltas(&overflow, 0, 1, &encode_model_deltas(0, [big.as_slice()].into_iter()));
+        assert!(matches!(err, Err(CodecError::Tensor(TensorError::NonFinite { .. }))), "{err:?}");
     }
 }

@@ -59,6 +59,8 @@ pub enum CodecError {
     Malformed(String),
     #[error("payload checksum {got:#010x} does not match {expected:#010x}")]
     ChecksumMismatch { expected: u32, got: u32 },
+    #[error("model deltas from version {} to {}, expected from {} to {}", got.0, got.1, expected.0, expected.1)]
+    DeltaVersions { expected: (u64, u64), got: (u64, u64) },
     #[error(transparent)]
     Tensor(#[from] TensorError),
 }
@@ -69,7 +71,9 @@ impl CodecError {
             Self::ProtocolVersion { .. } => ErrorCode::ProtocolVersion,
             Self::FrameTooLarge { .. } | Self::Oversized { .. } => ErrorCode::Oversized,
             Self::ChecksumMismatch { .. } => ErrorCode::ChecksumMismatch,
-            Self::BadMagic | Self::Truncated { .. } | Self::Malformed(_) => ErrorCode::MalformedFrame,
+            Self::BadMagic | Self::Truncated { .. } | Self::Malformed(_) | Self::DeltaVersions { .. } => {
+                ErrorCode::MalformedFrame
+            }
             Self::Tensor(e) => e.code(),
         }
     }

@@ -28,6 +28,8 @@ pub mod routes {
     pub const WS: &str = "/ws";
     /// The router's pattern of [`model`].
     pub const MODEL: &str = "/model/{version}";
+    /// The router's pattern of [`model_deltas`].
+    pub const MODEL_DELTAS: &str = "/model/{version}/deltas/{from}";
     pub const SHARD: &str = "/shard/{index}";
     pub const SHARD_MANIFEST: &str = "/shard/{index}/manifest";
     pub const FROZEN: &str = "/policy/frozen/{tag}";
@@ -39,6 +41,12 @@ pub mod routes {
     /// The global trainable tensors of `version` (safetensors).
     pub fn model(version: u64) -> String {
         format!("/model/{version}")
+    }
+
+    /// The global model of `version` as the chain of the rounds' deltas from version `from`, which the client
+    /// holds ([`crate::codec::encode_model_deltas`]).
+    pub fn model_deltas(version: u64, from: u64) -> String {
+        format!("/model/{version}/deltas/{from}")
     }
 
     /// Shard `index` as stored.
@@ -97,6 +105,10 @@ pub struct RoundMetrics {
     pub bytes_up: u64,
     /// Bytes this client has received since it joined (control messages and model downloads).
     pub bytes_down: u64,
+    /// Bytes of this round's download of the global model: the whole model, the chain of deltas from the version
+    /// the client held ([`RoundTask::model_deltas`]), or 0 when it held the task's version already.
+    #[serde(default)]
+    pub download_bytes: u64,
 }
 
 /// Client -> server.
@@ -281,6 +293,22 @@ pub struct RoundTask {
     /// How to encode the update.
     #[serde(default)]
     pub update_encoding: UpdateEncoding,
+    /// Whether a client holding an earlier global model may download this one as deltas; `None`: only whole.
+    #[serde(default)]
+    pub model_deltas: Option<ModelDeltas>,
+}
+
+/// The global model of a task offered as the chain of the rounds' deltas (`GET /model/{version}/deltas/{from}`)
+/// to a client that holds an earlier version: the run's update encoding of each round's change, which the server
+/// made its global model exactly as the client rebuilds it (see [`crate::codec::encode_model_delta`]). Offered only
+/// where the chain is shorter than the whole model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ModelDeltas {
+    /// The oldest version the chain starts from: a client holding a version in `since..model_version` may ask.
+    pub since: u64,
+    /// CRC32 of the task's model ([`crate::NamedTensors::checksum`]): what the client checks the model it rebuilt
+    /// against.
+    pub checksum: u32,
 }
 
 impl RoundTask {
@@ -543,6 +571,7 @@ mod tests {
             eval_request: false,
             rollout: None,
             update_encoding: UpdateEncoding::F32,
+            model_deltas: None,
         };
         let at = |step| task(0, 20).lr_at(step);
         let close = |a: f64, b: f64| assert!((a - b).abs() < 1e-12, "{a} != {b}");

@@ -71,6 +71,16 @@ pub(crate) fn write_values(encoding: UpdateEncoding, values: &mut [f32], out: &m
     }
 }
 
+/// Appends every nonzero value of `values` in top-k's layout, so that [`read_values`] at a fraction of 1 reads them
+/// back exactly: how a download sends a top-k run's change of the global model, as sparse as its clients' updates
+/// (plain FedAvg's is their union), which top-k at the run's fraction would mostly drop.
+pub(crate) fn write_nonzero(values: &[f32], out: &mut Vec<u8>) {
+    let kept: Vec<usize> = (0..values.len()).filter(|&i| values[i] != 0.0).collect();
+    out.extend_from_slice(&(kept.len() as u32).to_le_bytes());
+    out.extend(kept.iter().flat_map(|&i| (i as u32).to_le_bytes()));
+    out.extend(kept.iter().flat_map(|&i| values[i].to_le_bytes()));
+}
+
 /// Reads `numel` values laid out as `encoding`; `name` is for errors.
 pub(crate) fn read_values(
     encoding: UpdateEncoding,
@@ -231,6 +241,12 @@ mod tests {
         assert_eq!(all, values);
         assert_eq!(UpdateEncoding::topk_count(1e-9, 5), 1);
         assert_eq!(UpdateEncoding::topk_count(0.5, 0), 0);
+
+        let mut out = Vec::new();
+        write_nonzero(&values, &mut out);
+        assert_eq!(out.len(), 4 + 8 * 7, "every value but the 0");
+        let read = read_values(UpdateEncoding::Topk { fraction: 1.0 }, values.len(), &mut Reader::new(&out), "t");
+        assert_eq!(read.unwrap(), values);
     }
 
     #[test]

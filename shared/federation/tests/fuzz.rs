@@ -1,12 +1,13 @@
 //! A bounded property test of everything that parses a stranger's bytes: the protocol's JSON messages, the
 //! binary update frames and their reassembly, payload decoding and safetensors models. Arbitrary bytes, and
 //! valid inputs mutated (bit flips, truncation, splices, header fields set to extremes), must give an error or
-//! a value, never a panic, and a payload is never accepted past the limits, whatever a header claims.
+//! a value, never a panic, and a payload is never accepted past the limits, whatever a header claims. The chains
+//! of model deltas a client downloads are fuzzed the same way.
 //! `FEDVLA_FUZZ_CASES` sets the number of cases per target (20,000 by default).
 
 use fedvla_federation::codec::{
-    FrameHeader, Reassembler, UpdateLimits, UpdateValues, decode_payload, encode_delta_payload, encode_payload,
-    encode_update,
+    FrameHeader, Reassembler, UpdateLimits, UpdateValues, apply_model_deltas, decode_payload, encode_delta_payload,
+    encode_model_delta, encode_model_deltas, encode_payload, encode_update,
 };
 use fedvla_federation::protocol::RolloutEpisode;
 use fedvla_federation::{
@@ -188,6 +189,35 @@ fn compressed_payloads_never_panic() {
         for _ in 0..cases() / 4 {
             let input = if rng.below(4) > 0 { rng.mutate(&payload) } else { rng.bytes(700) };
             check_decode(&input, &spec, encoding);
+        }
+    }
+}
+
+/// Damaged and arbitrary chains of model deltas: refused, or a model of the held one's names and shapes, never a
+/// panic.
+#[test]
+fn model_delta_chains_never_panic() {
+    let held = tensors();
+    let spec = held.spec();
+    let mut rng = Cases(4);
+    let encodings =
+        [UpdateEncoding::F16, UpdateEncoding::Bf16, UpdateEncoding::Int8, UpdateEncoding::Topk { fraction: 0.1 }];
+    for encoding in encodings {
+        let mut models = vec![held.clone()];
+        let mut payloads = Vec::new();
+        for step in 1..=2 {
+            let target = models[step - 1].zip_map(&held, |m, _| m * 0.9 + 0.01 * step as f32).unwrap();
+            let (payload, model) = encode_model_delta(&models[step - 1], &target, encoding).unwrap().unwrap();
+            payloads.push(payload);
+            models.push(model);
+        }
+        let chain = encode_model_deltas(0, payloads.iter().map(Vec::as_slice));
+        assert_eq!(apply_model_deltas(&held, 0, 2, &chain).unwrap(), models[2], "{encoding:?}: the valid chain");
+        for _ in 0..cases() / 4 {
+            let input = if rng.below(4) > 0 { rng.mutate(&chain) } else { rng.bytes(700) };
+            if let Ok(model) = apply_model_deltas(&held, 0, 2, &input) {
+                assert_eq!(model.spec(), spec, "{encoding:?}: a rebuilt model has the held one's names and shapes");
+            }
         }
     }
 }

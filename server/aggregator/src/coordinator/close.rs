@@ -3,10 +3,15 @@
 //! update to leave out and form the aggregate again without (that would mean keeping them all); a failed aggregate
 //! or evaluation skips the round, the global model staying as it was. What used to break an aggregate, values
 //! beyond any model's, the strategies refuse as each update is folded (`dropped_update`).
+//!
+//! Under a compressed update encoding, the next global model is the last one plus its change as the download of
+//! deltas serves it ([`encode_model_delta`]), so that a volunteer rebuilding it from the deltas holds the server's
+//! model bit for bit.
 
 use std::sync::Arc;
 
 use bytes::Bytes;
+use fedvla_federation::codec::encode_model_delta;
 use fedvla_federation::{BoxError, ErrorCode, EvalMetrics, NamedTensors, conclude};
 
 use super::round::RoundState;
@@ -17,8 +22,8 @@ use crate::run_dir::RunDirError;
 /// What became of a round's updates.
 pub(super) enum Aggregated {
     /// The global model was replaced (and the strategy's state committed); `eval` is its evaluation when the
-    /// round evaluates.
-    Accepted { eval: Option<EvalMetrics>, contributors: Vec<u64> },
+    /// round evaluates, `delta` its change from the last one as downloads serve it (none in f32 runs).
+    Accepted { eval: Option<EvalMetrics>, contributors: Vec<u64>, delta: Option<Bytes> },
     /// The aggregate failed, or its evaluation did: the global model stays as it was.
     Skipped { reason: String },
 }
@@ -35,14 +40,26 @@ impl Running {
         let aggregation = state.aggregation.take().expect("the round's aggregation is closed once");
         let strategy = Arc::clone(&self.c.strategy);
         let global = Arc::clone(&self.c.global);
-        let step = blocking(move || {
+        let encoding = self.c.config.encoding();
+        let concluded = blocking(move || {
             let strategy = strategy.lock().expect("strategy lock");
-            conclude(strategy.as_ref(), &global, aggregation)
+            let mut step =
+                conclude(strategy.as_ref(), &global, aggregation).map_err(|e| format!("aggregation failed: {e}"))?;
+            // The model a volunteer rebuilds from the served delta becomes the global one (see encode_model_delta).
+            let delta = match encode_model_delta(&global, &step.global, encoding) {
+                Ok(Some((delta, model))) => {
+                    step.global = model;
+                    Some(Bytes::from(delta))
+                }
+                Ok(None) => None,
+                Err(e) => return Err(format!("the aggregate's change cannot be served as a delta: {e}")),
+            };
+            Ok((step, delta))
         })
         .await;
-        let step = match step {
-            Ok(step) => step,
-            Err(e) => return Ok(Aggregated::Skipped { reason: format!("aggregation failed: {e}") }),
+        let (step, delta) = match concluded {
+            Ok(concluded) => concluded,
+            Err(reason) => return Ok(Aggregated::Skipped { reason }),
         };
         let candidate = Arc::new(step.global);
         let eval = match evaluate {
@@ -56,7 +73,7 @@ impl Running {
                 self.c.global = candidate;
                 self.c.strategy.lock().expect("strategy lock").commit(step.state);
                 let contributors = state.participants.iter().filter(|(_, p)| p.folded).map(|(id, _)| *id).collect();
-                return Ok(Aggregated::Accepted { eval: eval.and_then(Result::ok), contributors });
+                return Ok(Aggregated::Accepted { eval: eval.and_then(Result::ok), contributors, delta });
             }
         };
         Ok(Aggregated::Skipped { reason })
@@ -91,12 +108,14 @@ impl Running {
     }
 
     /// Saves the round's model (its exporters roll it out in the sim) and the strategy's state, appends its
-    /// metrics line, then publishes the model for download. Returns the metrics line as written.
+    /// metrics line, then publishes the model for download, with its `delta` from the last one when it has one.
+    /// Returns the metrics line as written.
     pub(super) async fn persist(
         &mut self,
         round: u64,
         mut line: MetricsLine,
         eval: Option<EvalMetrics>,
+        delta: Option<Bytes>,
     ) -> Result<MetricsLine, CoordinatorError> {
         line.round = round;
         line.model_version = round;
@@ -128,7 +147,7 @@ impl Running {
             Ok((line, bytes))
         })
         .await?;
-        let published = self.c.model_tx.borrow().next(round, Bytes::from(bytes));
+        let published = self.c.model_tx.borrow().next(round, Bytes::from(bytes), delta);
         self.c.model_tx.send_replace(Arc::new(published));
         self.c.completed = Some(round);
         self.c.status_tx.send_modify(|s| s.completed_rounds = round);

@@ -68,7 +68,7 @@ impl Running {
             }
             None => {
                 let eval = self.evaluate(0, Arc::clone(&self.c.global)).await.map_err(CoordinatorError::Evaluate)?;
-                let line = self.persist(0, MetricsLine::default(), Some(eval)).await?;
+                let line = self.persist(0, MetricsLine::default(), Some(eval), None).await?;
                 self.observe(RunEvent::RoundClosed { round: 0, attempt: 0, updates: 0, line: Some(Box::new(line)) });
                 1
             }
@@ -152,16 +152,16 @@ impl Running {
                 settings: (!new_settings.is_empty()).then_some(new_settings),
                 ..MetricsLine::default()
             };
-            let (contributors, eval) = match outcome {
-                close::Aggregated::Accepted { eval, contributors } => (contributors, eval),
+            let (contributors, eval, delta) = match outcome {
+                close::Aggregated::Accepted { eval, contributors, delta } => (contributors, eval, delta),
                 close::Aggregated::Skipped { reason } => {
                     tracing::warn!(round, %reason, "round skipped: the global model stays as it was");
                     self.c.status_tx.send_modify(|s| s.skipped_rounds += 1);
                     line.skipped = Some(reason);
-                    (Vec::new(), None)
+                    (Vec::new(), None, None)
                 }
             };
-            let line = self.persist(round, line, eval).await?;
+            let line = self.persist(round, line, eval, delta).await?;
             if let Some(norms) = line.accepted_update_norms() {
                 self.screen.remember(norms);
             }

@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use fedvla_federation::{
-    Aggregation, Contribution, ErrorCode, NamedTensors, RolloutRequest, RoundMetrics, RoundTask, ServerMessage, fnv1a,
-    mix,
+    Aggregation, Contribution, ErrorCode, ModelDeltas, NamedTensors, RolloutRequest, RoundMetrics, RoundTask,
+    ServerMessage, fnv1a, mix,
 };
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -115,6 +115,7 @@ impl RoundState {
                 seconds: p.metrics.as_ref().map(|m| m.seconds),
                 bytes_up: p.metrics.as_ref().map(|m| m.bytes_up),
                 bytes_down: p.metrics.as_ref().map(|m| m.bytes_down),
+                download_bytes: p.metrics.as_ref().map(|m| m.download_bytes),
                 eval_examples: p.eval.map(|e| e.0),
                 eval_loss: p.eval.map(|e| e.1),
                 rollout: p.rollout.clone(),
@@ -136,6 +137,13 @@ impl Running {
         let mut picked = rand::seq::index::sample(&mut rng, n, k).into_vec();
         picked.sort_unstable();
         let version = self.c.global_version();
+        // The whole model, or the deltas since the version a volunteer holds while they are served.
+        let model_deltas = self
+            .c
+            .model_tx
+            .borrow()
+            .deltas_since()
+            .map(|since| ModelDeltas { since, checksum: self.c.global.checksum() });
         let mut participants = BTreeMap::new();
         let mut rollouts_requested = false;
         for i in picked {
@@ -177,6 +185,7 @@ impl Running {
                     max_frames: cfg.rollout_max_frames,
                 }),
                 update_encoding: cfg.encoding(),
+                model_deltas,
             };
             // Clients evaluate the model they start from (held-out loss, then sim rollouts) before they train.
             let first_step = if task.eval_request || task.rollout.is_some() {
@@ -308,7 +317,10 @@ impl Running {
             }
             Event::Update { client_id, update } => match participant(client_id) {
                 Some(p) if Some(update.round) == current && p.update.is_none() => {
-                    let UpdateReceived { round: _, values, claimed_examples, train_loss, bytes } = *update;
+                    // The reservation ends with this event, once the round holds the model (the fold follows in
+                    // `settle`, on this task, before the next event is taken).
+                    let UpdateReceived { round: _, values, claimed_examples, train_loss, bytes, reservation: _ } =
+                        *update;
                     let model = match values.into_model(&self.c.global) {
                         Ok(model) => model,
                         Err(e) => {

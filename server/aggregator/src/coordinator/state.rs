@@ -2,10 +2,11 @@
 //! collects, the status and model it publishes, and the running state its round loop ([`super`]), a round in
 //! flight ([`super::round`]) and closing a round ([`super::close`]) work on.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::{Arc, Mutex};
 
 use bytes::Bytes;
+use fedvla_federation::codec::{encode_model_deltas, model_deltas_len};
 use fedvla_federation::{
     BoxError, Capabilities, DataReport, ErrorCode, Evaluator, NamedTensors, NormalizationStats, RolloutEpisode,
     RoundMetrics, ServerMessage, Strategy, UpdateValues,
@@ -20,6 +21,7 @@ use crate::events::RunObserver;
 use crate::records::DataSource;
 use crate::run_dir::{ModelExporter, RunDir, RunDirError};
 use crate::sessions::Sessions;
+use crate::upload_budget::Reservation;
 
 /// What connections tell the coordinator.
 #[derive(Debug)]
@@ -83,26 +85,48 @@ pub struct UpdateReceived {
     pub train_loss: f64,
     /// Bytes of the update's binary frames, headers included.
     pub bytes: u64,
+    /// The update's share of the upload budget, ended once the round has taken the update (folded or held), so
+    /// that updates queued for a slow fold hold the next uploads back.
+    pub reservation: Reservation,
 }
 
 /// The global model as served: its version and safetensors bytes, and the version before it, which a volunteer
-/// may still ask for when a round closed between its reading the setup (or its task) and its download.
+/// may still ask for when a round closed between its reading the setup (or its task) and its download; and the
+/// deltas of the last rounds, which a volunteer holding an earlier version downloads instead of the whole model.
 #[derive(Debug, Clone)]
 pub struct PublishedModel {
     pub version: u64,
     pub safetensors: Bytes,
     previous: Option<(u64, Bytes)>,
+    /// Each version's delta payload from the version before it ([`fedvla_federation::codec::encode_model_delta`]),
+    /// oldest first, up to `version` without a gap, as many as make a chain shorter than the whole model (a longer
+    /// one is never worth downloading): at most one model's bytes more held.
+    deltas: VecDeque<(u64, Bytes)>,
 }
 
 impl PublishedModel {
     /// The first model a run serves.
     pub fn first(version: u64, safetensors: Bytes) -> Self {
-        Self { version, safetensors, previous: None }
+        Self { version, safetensors, previous: None, deltas: VecDeque::new() }
     }
 
-    /// The model that follows this one; this one stays downloadable as the previous version.
-    pub fn next(&self, version: u64, safetensors: Bytes) -> Self {
-        Self { version, safetensors, previous: Some((self.version, self.safetensors.clone())) }
+    /// The model that follows this one, with its delta from this one when it has one (`None`: an f32 run, or a
+    /// round that left the model as it was, after which only whole models are served); this one stays
+    /// downloadable as the previous version.
+    pub fn next(&self, version: u64, safetensors: Bytes, delta: Option<Bytes>) -> Self {
+        let mut deltas = match delta {
+            Some(delta) if version == self.version + 1 => {
+                let mut deltas = self.deltas.clone();
+                deltas.push_back((version, delta));
+                deltas
+            }
+            _ => VecDeque::new(),
+        };
+        let chain_len = |d: &VecDeque<(u64, Bytes)>| model_deltas_len(d.len(), d.iter().map(|(_, b)| b.len()).sum());
+        while !deltas.is_empty() && chain_len(&deltas) >= safetensors.len() {
+            deltas.pop_front();
+        }
+        Self { version, safetensors, previous: Some((self.version, self.safetensors.clone())), deltas }
     }
 
     /// The bytes of `version` while it is the current or the previous one.
@@ -112,6 +136,19 @@ impl PublishedModel {
             Some((previous, bytes)) if *previous == version => Some(bytes),
             _ => None,
         }
+    }
+
+    /// The oldest version the current one is served from as deltas, when any is.
+    pub fn deltas_since(&self) -> Option<u64> {
+        self.deltas.front().map(|(version, _)| version - 1)
+    }
+
+    /// The chain of deltas taking version `from` to `version` ([`encode_model_deltas`]), while every one of them
+    /// is kept.
+    pub fn deltas(&self, version: u64, from: u64) -> Option<Vec<u8>> {
+        let first = self.deltas.iter().position(|(v, _)| *v == from + 1)?;
+        let last = self.deltas.iter().position(|(v, _)| *v == version)?;
+        (first <= last).then(|| encode_model_deltas(from, self.deltas.range(first..=last).map(|(_, b)| &b[..])))
     }
 }
 
@@ -209,10 +246,39 @@ mod tests {
         let first = PublishedModel::first(3, Bytes::from_static(b"three"));
         assert_eq!(first.bytes_of(3).map(|b| &b[..]), Some(&b"three"[..]));
         assert!(first.bytes_of(2).is_none());
-        let second = first.next(4, Bytes::from_static(b"four"));
-        let third = second.next(5, Bytes::from_static(b"five"));
+        let second = first.next(4, Bytes::from_static(b"four"), None);
+        let third = second.next(5, Bytes::from_static(b"five"), None);
         assert_eq!(third.bytes_of(5).map(|b| &b[..]), Some(&b"five"[..]));
         assert_eq!(third.bytes_of(4).map(|b| &b[..]), Some(&b"four"[..]));
         assert!(third.bytes_of(3).is_none() && third.bytes_of(6).is_none());
+    }
+
+    /// Deltas are kept while their chain is shorter than the model, served for any version kept, and a version
+    /// reached without one breaks every chain across it.
+    #[test]
+    fn deltas_are_kept_while_their_chain_is_shorter_than_the_model() {
+        let model = Bytes::from(vec![0u8; 100]);
+        let delta = |b: u8| Some(Bytes::from(vec![b; 20]));
+        let mut published = PublishedModel::first(0, model.clone());
+        assert_eq!(published.deltas_since(), None);
+        for version in 1..=4 {
+            published = published.next(version, model.clone(), delta(version as u8));
+        }
+        // 16 + 3 x (8 + 20) = 100 is no shorter than the model: the last two rounds' deltas are kept.
+        assert_eq!(published.deltas_since(), Some(2));
+        let chain = published.deltas(4, 2).unwrap();
+        assert_eq!(chain, encode_model_deltas(2, [&[3u8; 20][..], &[4u8; 20][..]].into_iter()));
+        assert_eq!(published.deltas(4, 3).unwrap(), encode_model_deltas(3, [&[4u8; 20][..]].into_iter()));
+        assert_eq!(published.deltas(3, 2).unwrap(), encode_model_deltas(2, [&[3u8; 20][..]].into_iter()));
+        assert!(
+            published.deltas(4, 1).is_none() && published.deltas(5, 3).is_none() && published.deltas(3, 3).is_none()
+        );
+        let unchanged = published.next(5, model.clone(), None);
+        assert_eq!(unchanged.deltas_since(), None);
+        assert!(unchanged.deltas(4, 3).is_none());
+        let again = unchanged.next(6, model.clone(), delta(6));
+        assert_eq!(again.deltas_since(), Some(5));
+        let too_long = again.next(7, model, Some(Bytes::from(vec![7u8; 90])));
+        assert_eq!(too_long.deltas_since(), None, "a delta as long as the model is not served");
     }
 }

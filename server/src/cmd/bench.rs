@@ -133,7 +133,8 @@ fn download_table(sizes: &[String], encodings: &[UpdateEncoding], topk_clients: 
     println!("|---|---|---|---|");
     for size in sizes {
         let cfg = SmolVlaConfig::preset(size)?;
-        let frozen: usize = cfg.param_specs().iter().filter(|p| !p.trainable).map(|p| p.numel()).sum();
+        let frozen: usize =
+            cfg.param_specs().iter().filter(|p| !p.trainable).map(fedvla_policy::ParamSpec::numel).sum();
         println!("| {size} | {frozen} | {:.1} MB | {:.1} MB |", 4.0 * frozen as f64 / 1e6, 2.0 * frozen as f64 / 1e6);
     }
     println!("\nDownload per client-round of a volunteer that holds the last version, LeRobot's default freezing:");

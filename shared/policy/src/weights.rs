@@ -305,15 +305,8 @@ impl ParamStore {
         device: &Device,
         require_grad: bool,
     ) -> Self {
-        let tensors = tensors
-            .into_iter()
-            .map(|(k, t)| {
-                let flat = Tensor::<1>::from_data(TensorData::new(t.data.clone(), [t.data.len()]), device);
-                let flat = if require_grad { flat.require_grad() } else { flat };
-                (k.clone(), (flat, t.shape.clone()))
-            })
-            .collect();
-        Self { tensors, reads: None }
+        // One tensor copied at a time, as it is uploaded.
+        Self::upload_owned(tensors.into_iter().map(|(k, t)| (k.clone(), t.clone())), device, require_grad)
     }
 
     /// [`ParamStore::upload`] of tensors it takes: each one's values move to the device, and on the CPU they stay

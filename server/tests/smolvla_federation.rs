@@ -472,7 +472,8 @@ fn shuffled_labels_permute_the_training_actions_and_spare_the_held_out_rows() {
 }
 
 /// `keep-optimizer-state`: a client that keeps its AdamW moments trains a round differently from one whose task
-/// asks for a fresh optimizer, from the same global model after the same first round; each is reproducible.
+/// asks for a fresh optimizer, from the same global model after the same first round (one that kept them: a task
+/// that does not keep its moments drops them as it ends); each is reproducible.
 #[test]
 fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so() {
     let tmp = tempfile::tempdir().unwrap();
@@ -496,18 +497,19 @@ fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so
         update_encoding: fedvla_federation::UpdateEncoding::F32,
         model_deltas: None,
     };
-    let second_round = |keep: bool| {
+    let rounds = |first_keeps: bool, second_keeps: bool| {
         let mut trainer = workload.centralized_trainer(ComputeDevice::Cpu).unwrap();
         let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
         trainer.set_global(&global).unwrap();
-        rt.block_on(trainer.train(&task(1, false))).unwrap();
+        rt.block_on(trainer.train(&task(1, first_keeps))).unwrap();
         trainer.set_global(&global).unwrap();
-        rt.block_on(trainer.train(&task(2, keep))).unwrap().update
+        rt.block_on(trainer.train(&task(2, second_keeps))).unwrap().update
     };
-    let (kept, reset) = (second_round(true), second_round(false));
+    let (kept, reset) = (rounds(true, true), rounds(true, false));
     assert_ne!(kept, reset, "the first round's moments must shape the kept optimizer's steps");
-    assert_eq!(second_round(true), kept);
-    assert_eq!(second_round(false), reset);
+    assert_eq!(rounds(true, true), kept);
+    assert_eq!(rounds(true, false), reset);
+    assert_eq!(rounds(false, true), reset, "a first round that did not keep its moments dropped them");
 }
 
 /// A federation on a dataset of all four sim tasks, each task whole on one client (`partitioning = "by-task"`):

@@ -608,6 +608,7 @@ mod tests {
                 messages_per_second: 50,
                 uploads: UploadBudget::new(1 << 20),
                 upload_wait: Duration::from_secs(60),
+                sockets: tokio_util::task::TaskTracker::new(),
             };
             let sink = Box::pin(sink::unfold(server_tx, |tx, msg: Message| async move {
                 tx.send(msg).ok();

@@ -31,7 +31,7 @@ use tower::ServiceExt;
 use crate::console::ConsoleHub;
 
 /// How long open connections get to finish their requests once the server shuts down.
-const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
+pub(crate) const SHUTDOWN_GRACE: Duration = Duration::from_secs(5);
 
 /// The listener's bounds (run configuration keys `max-connections`, `header-read-timeout-ms`, `idle-timeout-ms`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -46,8 +46,9 @@ async fn ws_upgrade(
     // Twice our frame limit at the WebSocket layer, so a moderately oversized frame still reaches the codec and
     // gets a clear error, while an absurd one is cut off before it is buffered.
     let limit = state.limits.max_frame_bytes * 2 + 64 * 1024;
+    let sockets = state.sockets.clone();
     ws.max_frame_size(limit).max_message_size(limit).on_upgrade(move |socket| {
         let (sink, stream) = socket.split();
-        handle_socket(sink, stream, state, peer.ip())
+        sockets.track_future(handle_socket(sink, stream, state, peer.ip()))
     })
 }

@@ -19,6 +19,7 @@ use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 
 use crate::app;
 use crate::bounds::JoinLimiter;
@@ -54,6 +55,7 @@ pub struct ServerHandle {
     operator_token: String,
     coordinator: JoinHandle<Result<RunStatus, CoordinatorError>>,
     http: JoinHandle<std::io::Result<()>>,
+    sockets: TaskTracker,
 }
 
 /// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
@@ -109,6 +111,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         Some(path) => volunteers.with_allowed_keys(read_allowed_keys(path)?),
         None => volunteers,
     });
+    let sockets = TaskTracker::new();
     let state = AppState {
         socket: SocketState {
             events: events_tx,
@@ -125,6 +128,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
             messages_per_second: config.max_messages_per_second,
             uploads: uploads.clone(),
             upload_wait: Duration::from_millis(config.round_deadline_ms),
+            sockets: sockets.clone(),
         },
         volunteers: VolunteerState {
             volunteers,
@@ -169,7 +173,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     } else {
         tracing::info!("console: {scheme}://{addr}/console  (token: operator-token of the run configuration)");
     }
-    Ok(ServerHandle { addr, cancel, status, operator_token, coordinator, http })
+    Ok(ServerHandle { addr, cancel, status, operator_token, coordinator, http, sockets })
 }
 
 impl ServerHandle {
@@ -200,6 +204,12 @@ impl ServerHandle {
         self.cancel.cancel();
         if let Ok(Err(e)) = self.http.await {
             tracing::warn!(error = %e, "http server error");
+        }
+        // The volunteers' sockets send what they were told last (`Finished`) and close before the process may end:
+        // otherwise a volunteer could see its connection reset instead.
+        self.sockets.close();
+        if tokio::time::timeout(http::SHUTDOWN_GRACE, self.sockets.wait()).await.is_err() {
+            tracing::info!("closing WebSockets still open after {:?}", http::SHUTDOWN_GRACE);
         }
         result
     }

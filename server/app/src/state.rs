@@ -15,6 +15,7 @@ use fedvla_aggregator::upload_budget::UploadBudget;
 use fedvla_federation::{TensorSpec, UpdateEncoding, UpdateLimits};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 
 use crate::bounds::JoinLimiter;
 use crate::console::ConsoleHub;
@@ -55,6 +56,9 @@ pub struct SocketState {
     /// How long an update waits for room in the budget before it is refused: a round's deadline, past which it
     /// could not count anyway.
     pub upload_wait: Duration,
+    /// The WebSocket handlers, which run on past their HTTP connection (hyper hands the socket over at the
+    /// upgrade): a shutdown waits for them to send what the coordinator queued (`Finished`) and close.
+    pub sockets: TaskTracker,
 }
 
 /// The volunteers' HTTP routes': shards, frozen weights, the tokenizer, the global model, SCAFFOLD corrections,

@@ -26,6 +26,9 @@ use crate::run_dir::{RunDir, RunDirError, write_atomic};
 /// The registry's file in the run directory.
 pub const VOLUNTEERS_FILE: &str = "volunteers.json";
 
+/// The frozen weights volunteers download, in the run directory.
+pub const FROZEN_FILE: &str = "frozen.safetensors";
+
 /// Client ids are reserved (and the reservation persisted) this many at a time, so a restarted server never hands
 /// out an id it gave before (the `evaluate/round_N/client_K/` directories stay one client's each).
 const CLIENT_ID_BLOCK: u64 = 1024;
@@ -46,7 +49,8 @@ pub struct VolunteerOffer {
     pub shards: Vec<ShardOffer>,
     /// The workload's configuration for volunteers (see [`fedvla_federation::VolunteerSetup::policy`]).
     pub policy: serde_json::Value,
-    /// The frozen tensors as safetensors, when the workload has any.
+    /// The frozen tensors as safetensors, when the workload has any: [`Volunteers::new`] writes them into the run
+    /// directory ([`FROZEN_FILE`]) and lets these bytes go.
     pub frozen: Option<Bytes>,
     /// The sim tasks rollouts cycle through, with their instructions' token ids.
     pub rollout_tasks: RolloutTasks,
@@ -168,12 +172,30 @@ pub struct Admitted {
     pub persist: bool,
 }
 
-/// The offer as served: the frozen weights' content tag, the registry of keys, names, shards and client ids
-/// (round-robin, sticky by key, at most `max_names` keys), and the allow-list of a closed federation.
+/// The frozen weights as served: a file of the run directory, streamed to each volunteer that asks, so that the
+/// server holds no copy of them in memory (at full size 0.7 GB in bf16, for the whole run).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrozenFile {
+    pub path: PathBuf,
+    pub len: u64,
+    /// Hex SHA-256 prefix of the file; part of its URL, so caches never go stale.
+    pub tag: String,
+}
+
+impl FrozenFile {
+    /// Writes `bytes` atomically to `path` and tags them.
+    fn write(path: PathBuf, bytes: &[u8]) -> Result<Self, RunDirError> {
+        write_atomic(&path, bytes)?;
+        let tag = to_hex(&Sha256::digest(bytes)[..8]);
+        Ok(Self { path, len: bytes.len() as u64, tag })
+    }
+}
+
+/// The offer as served: the frozen weights' file, the registry of keys, names, shards and client ids (round-robin,
+/// sticky by key, at most `max_names` keys), and the allow-list of a closed federation.
 pub struct Volunteers {
     offer: VolunteerOffer,
-    /// Hex SHA-256 prefix of the frozen safetensors; part of their URL.
-    frozen_tag: Option<String>,
+    frozen: Option<FrozenFile>,
     registry: Mutex<Registry>,
     max_names: usize,
     /// The public keys (lowercase hex) a closed federation admits; `None`: any key.
@@ -187,17 +209,16 @@ pub struct Volunteers {
 
 impl Volunteers {
     /// The volunteers of the run in `run_dir`, continuing its saved registry if it has one; own datasets weigh at
-    /// most `own_data_max_examples` (0: as much as the largest shard).
+    /// most `own_data_max_examples` (0: as much as the largest shard). The offer's frozen weights are written into
+    /// the run directory and served from there.
     pub fn new(
-        offer: VolunteerOffer,
+        mut offer: VolunteerOffer,
         run_dir: RunDir,
         max_names: usize,
         own_data_max_examples: u64,
     ) -> Result<Self, RunDirError> {
-        let frozen_tag = offer.frozen.as_ref().map(|bytes| {
-            let digest = Sha256::digest(bytes);
-            digest[..8].iter().map(|b| format!("{b:02x}")).collect()
-        });
+        let frozen = offer.frozen.take().map(|bytes| FrozenFile::write(run_dir.path().join(FROZEN_FILE), &bytes));
+        let frozen = frozen.transpose()?;
         let path = run_dir.path().join(VOLUNTEERS_FILE);
         let mut registry: Registry = match std::fs::read(&path) {
             Ok(bytes) => serde_json::from_slice(&bytes).map_err(|e| RunDirError::Metrics {
@@ -216,7 +237,7 @@ impl Volunteers {
         };
         Ok(Self {
             offer,
-            frozen_tag,
+            frozen,
             registry: Mutex::new(registry),
             max_names,
             allowed_keys: None,
@@ -287,8 +308,8 @@ impl Volunteers {
             shard_url: routes::shard(index),
             shard_manifest_url: routes::shard_manifest(index),
             policy: offer.policy.clone(),
-            frozen_url: self.frozen_tag().map(routes::frozen),
-            frozen_bytes: offer.frozen.as_ref().map_or(0, |b| b.len() as u64),
+            frozen_url: self.frozen.as_ref().map(|f| routes::frozen(&f.tag)),
+            frozen_bytes: self.frozen.as_ref().map_or(0, |f| f.len),
             rollout_tasks: offer.rollout_tasks.clone(),
             model_version,
             tokenizer_url: offer.tokenizer.as_ref().map(|_| routes::TOKENIZER.to_owned()),
@@ -334,9 +355,9 @@ impl Volunteers {
         &self.offer
     }
 
-    /// Hex SHA-256 prefix of the frozen safetensors: part of their URL, so caches never go stale.
-    pub fn frozen_tag(&self) -> Option<&str> {
-        self.frozen_tag.as_deref()
+    /// The frozen weights' file, when the workload has any.
+    pub fn frozen(&self) -> Option<&FrozenFile> {
+        self.frozen.as_ref()
     }
 }
 
@@ -397,4 +418,36 @@ pub fn read_allowed_keys(path: &Path) -> Result<HashSet<String>, RunDirError> {
         keys.insert(to_hex(&key));
     }
     Ok(keys)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::RunConfig;
+
+    /// The frozen weights are written into the run directory once, tagged by their content, and served from there:
+    /// the registry keeps no copy of their bytes.
+    #[test]
+    fn frozen_weights_are_served_from_a_file_of_the_run_directory() {
+        let base = tempfile::tempdir().unwrap();
+        let run_dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
+        let bytes = Bytes::from((0..=255u8).cycle().take(10_000).collect::<Vec<u8>>());
+        let offer = VolunteerOffer {
+            frozen: Some(bytes.clone()),
+            ..VolunteerOffer::shards_only(WorkloadKind::Smolvla, Vec::new())
+        };
+        let volunteers = Volunteers::new(offer, run_dir.clone(), 4, 0).unwrap();
+        let frozen = volunteers.frozen().expect("the offer has frozen weights").clone();
+        assert_eq!(frozen.path, run_dir.path().join(FROZEN_FILE));
+        assert_eq!(std::fs::read(&frozen.path).unwrap(), bytes);
+        assert_eq!(frozen.tag, to_hex(&Sha256::digest(&bytes)[..8]));
+        assert!(volunteers.offer().frozen.is_none(), "the bytes are let go once written");
+        let setup = volunteers.setup(None, 0);
+        assert_eq!(setup.frozen_url, Some(routes::frozen(&frozen.tag)));
+        assert_eq!(setup.frozen_bytes, bytes.len() as u64);
+        // A restarted server writes the same file under the same tag.
+        let offer =
+            VolunteerOffer { frozen: Some(bytes), ..VolunteerOffer::shards_only(WorkloadKind::Smolvla, vec![]) };
+        assert_eq!(Volunteers::new(offer, run_dir, 4, 0).unwrap().frozen(), Some(&frozen));
+    }
 }

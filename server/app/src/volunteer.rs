@@ -15,7 +15,7 @@ use axum::body::Body;
 use axum::extract::{FromRef, FromRequestParts, Path, State};
 use axum::http::header::{CACHE_CONTROL, CONTENT_LENGTH, CONTENT_TYPE};
 use axum::http::request::Parts;
-use axum::http::{HeaderMap, StatusCode};
+use axum::http::{HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use fedvla_aggregator::registry::Volunteers;
@@ -27,6 +27,7 @@ use crate::auth::bearer;
 use crate::console::ConsoleEvent;
 use crate::error::ServerError;
 use crate::state::{AppState, VolunteerState};
+use crate::static_files::file_response;
 
 pub fn routes() -> Router<AppState> {
     Router::new()
@@ -92,19 +93,27 @@ pub async fn persist(volunteers: &Arc<Volunteers>) -> Result<(), ServerError> {
     }
 }
 
+/// The frozen weights, streamed from their file in the run directory (byte ranges too, so that a broken download
+/// can go on where it stopped).
 async fn get_frozen(
     _: Session,
     Path(tag): Path<String>,
     State(state): State<VolunteerState>,
-) -> Result<Response, ServerError> {
-    let v = &state.volunteers;
-    match (&v.offer().frozen, v.frozen_tag()) {
-        (Some(bytes), Some(current)) if current == tag => Ok((
-            [(CONTENT_TYPE, "application/octet-stream"), (CACHE_CONTROL, "public, max-age=31536000, immutable")],
-            bytes.clone(),
-        )
-            .into_response()),
-        _ => Err(ServerError::NotFound(format!("frozen weights {tag}: this run serves {:?}", v.frozen_tag()))),
+    request: HeaderMap,
+) -> Result<Response, axum::response::ErrorResponse> {
+    let frozen = state.volunteers.frozen();
+    match frozen {
+        Some(file) if file.tag == tag => {
+            let mut response = file_response(&file.path, &request).await?;
+            response
+                .headers_mut()
+                .insert(CACHE_CONTROL, HeaderValue::from_static("public, max-age=31536000, immutable"));
+            Ok(response)
+        }
+        _ => {
+            let served = frozen.map(|f| &f.tag);
+            Err(ServerError::NotFound(format!("frozen weights {tag}: this run serves {served:?}")).into())
+        }
     }
 }
 

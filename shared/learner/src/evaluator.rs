@@ -66,7 +66,7 @@ impl Evaluator for HeldOutEvaluator {
             &weights,
             "global model",
         )?;
-        let model = self.model.with_trainable(&ParamStore::upload(weights.iter(), &self.device, false));
+        let model = self.model.with_trainable(&ParamStore::upload_owned(weights, &self.device, false));
         let m = heldout_metrics(&model, &self.examples, &self.held_out)?;
         Ok(EvalMetrics {
             heldout_loss: m.loss,

@@ -112,7 +112,7 @@ impl PublishedModel {
 
     /// The model that follows this one, with its delta from this one when it has one (`None`: an f32 run, or a
     /// round that left the model as it was, after which only whole models are served); this one stays
-    /// downloadable as the previous version.
+    /// downloadable as the previous version, unless it is the same version.
     pub fn next(&self, version: u64, safetensors: Bytes, delta: Option<Bytes>) -> Self {
         let mut deltas = match delta {
             Some(delta) if version == self.version + 1 => {
@@ -126,7 +126,12 @@ impl PublishedModel {
         while !deltas.is_empty() && chain_len(&deltas) >= safetensors.len() {
             deltas.pop_front();
         }
-        Self { version, safetensors, previous: Some((self.version, self.safetensors.clone())), deltas }
+        // The same version again (round 0's model, published at start and once evaluated) keeps the one before.
+        let previous = match version == self.version {
+            true => self.previous.clone(),
+            false => Some((self.version, self.safetensors.clone())),
+        };
+        Self { version, safetensors, previous, deltas }
     }
 
     /// The bytes of `version` while it is the current or the previous one.
@@ -251,6 +256,9 @@ mod tests {
         assert_eq!(third.bytes_of(5).map(|b| &b[..]), Some(&b"five"[..]));
         assert_eq!(third.bytes_of(4).map(|b| &b[..]), Some(&b"four"[..]));
         assert!(third.bytes_of(3).is_none() && third.bytes_of(6).is_none());
+        // Round 0's model, published at start and again once evaluated, is held once.
+        let republished = first.next(3, Bytes::from_static(b"three"), None);
+        assert!(republished.bytes_of(3).is_some() && republished.previous.is_none());
     }
 
     /// Deltas are kept while their chain is shorter than the model, served for any version kept, and a version

@@ -46,11 +46,11 @@ const SERVER_HELD_OUT: f64 = 0.15;
 /// Everything the server and the clients of one SmolVLA run share.
 pub struct SmolVlaWorkload {
     cfg: SmolVlaConfig,
-    /// The initial checkpoint, split: the backbone tensors no client trains, on the CPU once (1.4 GB of f32 at the
-    /// base size) and shared, not copied, by the server's evaluator, the exporters and the volunteers' download;
-    /// and the trainable ones, the round-0 global model.
+    /// The initial checkpoint, split, on the CPU once and shared, not copied: the backbone tensors no client trains
+    /// (1.4 GB of f32 at the base size), by the server's evaluator, the exporters and the volunteers' download;
+    /// and the trainable ones, the round-0 global model, by the evaluator's resident model.
     frozen: ParamStore,
-    trainable: WeightMap,
+    trainable: ParamStore,
     /// The dataset's normalisation statistics, and the policy's view of them.
     dataset_stats: NormalizationStats,
     stats: NormStats,
@@ -423,7 +423,7 @@ impl SmolVlaWorkload {
             stats,
             cfg,
             frozen: ParamStore::upload_owned(frozen, &Device::flex(), false),
-            trainable,
+            trainable: ParamStore::upload_owned(trainable, &Device::flex(), false),
             tokenizer,
             export_dtype,
             checkpoint_dtype,
@@ -441,7 +441,7 @@ impl SmolVlaWorkload {
         let examples = self.examples(&self.pooled_shard)?;
         let (device, backend) = training_device(device)?;
         let mut weights = self.frozen.to_host();
-        weights.extend(self.trainable.iter().map(|(k, v)| (k.clone(), v.clone())));
+        weights.extend(self.trainable.to_host());
         SmolVlaTrainer::new(&self.cfg, weights, examples, self.seed, &device, backend)
     }
 
@@ -464,13 +464,13 @@ impl SmolVlaWorkload {
 
 impl Workload for SmolVlaWorkload {
     fn initial_model(&self) -> Result<NamedTensors, BoxError> {
-        Ok(to_named(&self.trainable)?)
+        Ok(to_named(&self.trainable.to_host())?)
     }
 
     fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError> {
         let examples = self.examples(&self.server_shard)?;
         let cpu = Device::flex();
-        let store = self.frozen.overlaid(&ParamStore::upload(self.trainable.iter(), &cpu, false));
+        let store = self.frozen.overlaid(&self.trainable);
         Ok(Box::new(HeldOutEvaluator::new(&self.cfg, &store, examples, &cpu)))
     }
 

@@ -1,14 +1,21 @@
 //! Exact, order-independent sums of weighted values, what every streaming rule accumulates a round in. A value is
 //! put on a fixed-point grid of `2^-FRACTION_BITS` (a function of the value alone) and its weighted integer added
-//! to an `i128` per value; integer addition is associative, so the sum, and the aggregate made of it, are the same
+//! to the value's slot; integer addition is associative, so the sum, and the aggregate made of it, are the same
 //! bits whatever order the updates arrive in (an `f64` running sum is not: `(a + b) + c` rounds differently from
-//! `a + (b + c)`), and a run is reproducible from its seed. Memory: 16 bytes per value of the model, whatever the
-//! number of updates.
+//! `a + (b + c)`), and a run is reproducible from its seed.
+//!
+//! A slot's sum is an `i128`, kept as two words: its `i64` part, one per value of the model, and the multiples of
+//! `2^64` beyond it, which only a slot whose sum has left the `i64` range has (it takes a sum of weight x value
+//! beyond `2^17`, e.g. a value of 5 over 30,000 examples): those are kept by slot while few, for every slot once
+//! many. Memory: 8 bytes per value of the model whatever the number of updates, 16 at most, from the first update
+//! added on (a round's sum takes no memory while its clients train).
 //!
 //! The grid keeps every f32 of magnitude at least `2^-23` exactly and rounds smaller ones by at most `2^-47`; a value
 //! of magnitude `MAX_MAGNITUDE` or more (no model's, an attacker's) is refused, which keeps each weighted term
 //! below `2^126`. The sum of the terms' magnitudes is kept beside the slots: below `2^127` no slot can have
 //! overflowed, in any order; at or beyond it (weights near `u64::MAX`) the round is refused as a whole.
+
+use std::collections::HashMap;
 
 use crate::error::AggregateError;
 
@@ -20,14 +27,55 @@ const SCALE: f64 = (1u64 << FRACTION_BITS) as f64;
 /// The running sum of weighted values, one slot per value of the model (tensors laid end to end).
 #[derive(Debug, Clone)]
 pub(super) struct ExactSum {
-    sums: Vec<i128>,
+    /// Each slot's sum modulo `2^64`, as a signed word; empty (every slot 0) before the first value is added.
+    low: Vec<i64>,
+    /// The multiples of `2^64` the slots' sums hold beyond `low`.
+    high: High,
+    len: usize,
     /// `sum of weight * max |grid value|` over the terms added: while below `2^127`, no slot has overflowed.
     bound: u128,
 }
 
+/// The high words of the slots' sums: by slot while at most one slot in [`SPARSE_SHARE`] has one, for every slot
+/// beyond.
+#[derive(Debug, Clone)]
+enum High {
+    Sparse(HashMap<usize, i64>),
+    Dense(Vec<i64>),
+}
+
+/// Past one slot in this many holding a high word, every slot gets one (8 bytes, against the map's ~20 each).
+const SPARSE_SHARE: usize = 8;
+
+impl High {
+    fn get(&self, slot: usize) -> i64 {
+        match self {
+            Self::Sparse(map) => map.get(&slot).copied().unwrap_or(0),
+            Self::Dense(words) => words[slot],
+        }
+    }
+
+    fn add(&mut self, slot: usize, carry: i64, len: usize) {
+        match self {
+            Self::Sparse(map) => {
+                let word = map.entry(slot).or_insert(0);
+                *word = word.wrapping_add(carry);
+                if map.len() > len / SPARSE_SHARE {
+                    let mut words = vec![0; len];
+                    for (&slot, &word) in map.iter() {
+                        words[slot] = word;
+                    }
+                    *self = Self::Dense(words);
+                }
+            }
+            Self::Dense(words) => words[slot] = words[slot].wrapping_add(carry),
+        }
+    }
+}
+
 impl ExactSum {
     pub(super) fn zeros(len: usize) -> Self {
-        Self { sums: vec![0; len], bound: 0 }
+        Self { low: Vec::new(), high: High::Sparse(HashMap::new()), len, bound: 0 }
     }
 
     /// Adds `weight * value` for each value `values()` yields, slot by slot from `offset`. Nothing is added when a
@@ -40,9 +88,23 @@ impl ExactSum {
     ) -> Result<(), f64> {
         in_range(values())?;
         let largest = values().map(|v| grid(v).unsigned_abs()).max().unwrap_or(0);
+        if self.low.is_empty() {
+            self.low = vec![0; self.len];
+        }
         let w = i128::from(weight);
-        for (slot, v) in self.sums[offset..].iter_mut().zip(values()) {
-            *slot = slot.wrapping_add(w * i128::from(grid(v)));
+        for ((slot, low), v) in self.low.iter_mut().enumerate().skip(offset).zip(values()) {
+            // The term is `high * 2^64 + low_term`, `low_term` its low word read as signed.
+            let term = w * i128::from(grid(v));
+            let low_term = term as i64;
+            let mut carry = ((term - i128::from(low_term)) >> 64) as i64;
+            let (sum, wrapped) = low.overflowing_add(low_term);
+            *low = sum;
+            if wrapped {
+                carry += if low_term > 0 { 1 } else { -1 };
+            }
+            if carry != 0 {
+                self.high.add(slot, carry, self.len);
+            }
         }
         self.bound = self.bound.saturating_add(u128::from(weight) * u128::from(largest));
         Ok(())
@@ -53,7 +115,14 @@ impl ExactSum {
         if self.bound >= 1 << 127 {
             return Err(AggregateError::Overflow);
         }
-        Ok(self.sums.iter().map(move |&s| s as f64 / SCALE / divisor))
+        let unset = if self.low.is_empty() { self.len } else { 0 };
+        let sums = self
+            .low
+            .iter()
+            .enumerate()
+            .map(|(slot, &low)| (i128::from(self.high.get(slot)) << 64) + i128::from(low))
+            .chain(std::iter::repeat_n(0, unset));
+        Ok(sums.map(move |s| s as f64 / SCALE / divisor))
     }
 }
 
@@ -104,6 +173,49 @@ mod tests {
         assert_eq!(sum.add(0, 1, || [5.0, -MAX_MAGNITUDE].into_iter()), Err(-MAX_MAGNITUDE));
         assert_eq!(sum.add(0, 1, || [f64::NAN, 0.0].into_iter()).map_err(f64::is_nan), Err(true));
         assert_eq!(sum.divided_by(1.0).unwrap().collect::<Vec<_>>(), vec![1.0, 2.0]);
+    }
+
+    /// Sums beyond the `i64` range, reached in every order and back, are the `i128` sums, whether a few slots
+    /// carry a high word or every slot does.
+    #[test]
+    fn sums_beyond_i64_are_exact_in_every_order() {
+        let reference = |terms: &[(u64, f64)]| -> f64 {
+            let sum: i128 = terms.iter().map(|&(w, v)| i128::from(w) * i128::from(grid(v))).sum();
+            sum as f64 / SCALE / 7.0
+        };
+        // Slot 0 climbs past 2^63 and comes back; slot 1 goes below -2^63; slot 2 stays small.
+        let updates: [(u64, [f64; 3]); 4] = [
+            (1 << 20, [3.0, -3.0, 0.5]),
+            (1 << 20, [2.5, -1.0, -0.25]),
+            (3, [-1.5, -1.75, 1e-6]),
+            (1 << 21, [-2.0, 0.75, 0.125]),
+        ];
+        for dense in [false, true] {
+            let mut sums = Vec::new();
+            for order in [[0, 1, 2, 3], [3, 2, 1, 0], [1, 3, 0, 2]] {
+                let mut sum = ExactSum::zeros(3);
+                if dense {
+                    sum.high = High::Dense(vec![0; 3]);
+                }
+                for i in order {
+                    let (w, values) = updates[i];
+                    sum.add(0, w, || values.into_iter()).unwrap();
+                }
+                sums.push(sum.divided_by(7.0).unwrap().map(f64::to_bits).collect::<Vec<_>>());
+            }
+            assert!(sums.iter().all(|s| *s == sums[0]));
+            for slot in 0..3 {
+                let terms: Vec<(u64, f64)> = updates.iter().map(|&(w, v)| (w, v[slot])).collect();
+                assert_eq!(f64::from_bits(sums[0][slot]), reference(&terms), "slot {slot}");
+            }
+        }
+        // Many slots with a high word: the map gives way to a word for every slot, and the sums stay exact.
+        let mut sum = ExactSum::zeros(16);
+        sum.add(0, 1 << 20, || [7.0; 16].into_iter()).unwrap();
+        sum.add(0, 1 << 20, || [7.0; 16].into_iter()).unwrap();
+        assert!(matches!(sum.high, High::Dense(_)));
+        let expected = reference(&[(1 << 20, 7.0), (1 << 20, 7.0)]) * 7.0;
+        assert!(sum.divided_by(1.0).unwrap().all(|s| s == expected));
     }
 
     #[test]

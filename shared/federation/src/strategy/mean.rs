@@ -7,7 +7,7 @@ use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
 /// Federated averaging: the example-weighted mean of the clients' tensors, summed exactly as updates arrive
-/// ([`super::exact`]: memory of 16 bytes a value whatever the number of clients, and the same aggregate in any
+/// ([`super::exact`]: memory of 8 bytes a value whatever the number of clients, and the same aggregate in any
 /// arrival order). The example total is summed in u128, so no set of u64 weights can wrap it.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct FedAvg;
@@ -39,9 +39,9 @@ impl Strategy for FedProx {
     }
 }
 
-/// The running example-weighted sum of a round's updates, exact and order-independent.
+/// The running example-weighted sum of a round's updates, exact and order-independent. It keeps the global
+/// model's names and shapes, not its values, which no mean needs.
 pub struct WeightedMean {
-    global: NamedTensors,
     spec: crate::tensors::TensorSpec,
     sum: ExactSum,
     total: u128,
@@ -51,7 +51,7 @@ pub struct WeightedMean {
 impl WeightedMean {
     pub fn new(global: &NamedTensors) -> Self {
         let len = global.iter().map(|(_, t)| t.values.len()).sum();
-        Self { global: global.clone(), spec: global.spec(), sum: ExactSum::zeros(len), total: 0, folded: 0 }
+        Self { spec: global.spec(), sum: ExactSum::zeros(len), total: 0, folded: 0 }
     }
 }
 
@@ -60,10 +60,9 @@ impl Aggregation for WeightedMean {
         let index = self.folded;
         tensors.validate(&self.spec).map_err(|source| AggregateError::Mismatch { index, source })?;
         // All values first: an out-of-range one leaves the sum as it was.
-        let global = &self.global;
+        let spec = &self.spec;
         let values = || {
-            global
-                .iter()
+            spec.iter()
                 .flat_map(|(name, _)| &tensors.get(name).expect("validated against the global spec").values)
                 .map(|&v| f64::from(v))
         };
@@ -82,9 +81,9 @@ impl Aggregation for WeightedMean {
         }
         let mut means = self.sum.divided_by(self.total as f64)?;
         let mut out = NamedTensors::new();
-        for (name, t) in self.global.iter() {
-            let values = means.by_ref().take(t.values.len()).map(|m| m as f32).collect();
-            out.insert(name, t.shape.clone(), values).expect("shape taken from the global model");
+        for (name, shape) in self.spec.iter() {
+            let values = means.by_ref().take(shape.iter().product()).map(|m| m as f32).collect();
+            out.insert(name, shape.to_vec(), values).expect("shape taken from the global model");
         }
         Ok(out)
     }

@@ -27,7 +27,7 @@ fn an_update_survives_chunking_and_reassembly_in_wasm() {
     update.insert("model.state_proj.bias", vec![4], vec![1.0, -1.0, f32::MIN_POSITIVE, 3.5]).unwrap();
     let spec = update.spec();
     let payload = encode_payload(&update);
-    let frames = encode_frames(&payload, 7, 64);
+    let frames: Vec<_> = encode_frames(&payload, 7, 64).collect();
     assert!(frames.len() > 1, "a 64-byte frame limit splits the update");
     let limits = UpdateLimits::for_spec(&spec, UpdateEncoding::F32, 64, 0);
     let mut reassembler = Reassembler::start(&frames[0], limits).unwrap();

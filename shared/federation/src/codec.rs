@@ -314,37 +314,39 @@ pub fn apply_model_deltas(held: &NamedTensors, from: u64, to: u64, chain: &[u8])
     Ok(model)
 }
 
-/// Splits an encoded payload into frames of at most `max_frame_bytes` (header included).
-pub fn encode_frames(payload: &[u8], round: u64, max_frame_bytes: usize) -> Vec<Vec<u8>> {
+/// Splits an encoded payload into frames of at most `max_frame_bytes` (header included), each made as it is taken,
+/// so that a sender holds one frame beside the payload, not a second copy of it.
+pub fn encode_frames(
+    payload: &[u8],
+    round: u64,
+    max_frame_bytes: usize,
+) -> impl ExactSizeIterator<Item = Vec<u8>> + '_ {
     assert!(max_frame_bytes > HEADER_LEN, "frame limit must exceed the {HEADER_LEN}-byte header");
     let chunk = max_frame_bytes - HEADER_LEN;
     let crc32 = crc32fast::hash(payload);
-    let chunks: Vec<&[u8]> = if payload.is_empty() { vec![&[][..]] } else { payload.chunks(chunk).collect() };
-    let chunk_count = chunks.len() as u32;
-    chunks
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let mut frame = Vec::with_capacity(HEADER_LEN + c.len());
-            FrameHeader {
-                protocol_version: PROTOCOL_VERSION,
-                round,
-                chunk_index: i as u32,
-                chunk_count,
-                payload_len: payload.len() as u64,
-                crc32,
-                chunk_len: c.len() as u32,
-            }
-            .write(&mut frame);
-            frame.extend_from_slice(c);
-            frame
-        })
-        .collect()
+    // An empty payload is one empty frame.
+    let chunk_count = payload.len().div_ceil(chunk).max(1);
+    (0..chunk_count).map(move |i| {
+        let c = &payload[(i * chunk).min(payload.len())..((i + 1) * chunk).min(payload.len())];
+        let mut frame = Vec::with_capacity(HEADER_LEN + c.len());
+        FrameHeader {
+            protocol_version: PROTOCOL_VERSION,
+            round,
+            chunk_index: i as u32,
+            chunk_count: chunk_count as u32,
+            payload_len: payload.len() as u64,
+            crc32,
+            chunk_len: c.len() as u32,
+        }
+        .write(&mut frame);
+        frame.extend_from_slice(c);
+        frame
+    })
 }
 
 /// Encodes tensors straight to frames.
 pub fn encode_update(tensors: &NamedTensors, round: u64, max_frame_bytes: usize) -> Vec<Vec<u8>> {
-    encode_frames(&encode_payload(tensors), round, max_frame_bytes)
+    encode_frames(&encode_payload(tensors), round, max_frame_bytes).collect()
 }
 
 /// Limits the receiving side enforces.

@@ -145,10 +145,11 @@ impl Trainer {
 
     /// Replaces the trainable tensors (e.g. with a new global model); the optimizer's moments stay (see
     /// [`Trainer::reset_optimizer`]).
-    pub fn set_trainable_weights(&mut self, weights: &WeightMap) -> Result<(), PolicyError> {
+    pub fn set_trainable_weights(&mut self, weights: WeightMap) -> Result<(), PolicyError> {
         let expected: Vec<_> = self.model.cfg.param_specs().into_iter().filter(|s| s.trainable).collect();
-        check_keys(&expected, weights, "trainable update")?;
-        let store = ParamStore::upload(weights.iter(), &self.device, true);
+        check_keys(&expected, &weights, "trainable update")?;
+        // Taken, not copied: on the CPU the weights' buffers become the tensors.
+        let store = ParamStore::upload_owned(weights, &self.device, true);
         self.trainable = store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();
         self.model = self.model.with_trainable(&store);
         Ok(())

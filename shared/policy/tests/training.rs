@@ -99,7 +99,7 @@ fn new_weights_keep_the_optimizer_state_until_it_is_reset() {
     let global = trainer.trainable_weights();
     // From `global`: a fresh trainer, the trained one keeping its moments, and the trained one reset.
     let step_from = |trainer: &mut Trainer| {
-        trainer.set_trainable_weights(&global).unwrap();
+        trainer.set_trainable_weights(global.clone()).unwrap();
         trainer.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
         trainer.trainable_weights()
     };

@@ -23,7 +23,7 @@ pub fn proximal_term_adds_mu_times_the_distance_from_the_anchor(device: &Device)
     let gradients = |mu: f64| {
         let mut trainer = Trainer::new(&cfg, &anchor, device, 5).unwrap();
         trainer.set_proximal(mu);
-        trainer.set_trainable_weights(&trainable).unwrap();
+        trainer.set_trainable_weights(trainable.clone()).unwrap();
         let (noise, time) = trainer.sample_noise_and_time(2);
         trainer.train_step_with(&batch, noise, &time, 1e-3).unwrap().1
     };

@@ -184,8 +184,9 @@ impl LocalTrainer for SmolVlaTrainer {
     fn set_global(&mut self, global: &NamedTensors) -> Result<(), BoxError> {
         // On the CPU, the evaluation model shares the trainer's new tensors; elsewhere it holds a copy on the CPU.
         let on_cpu = *self.trainer.device() == Device::flex();
-        let cpu_copy = (!on_cpu).then(|| ParamStore::upload_owned(to_weights(global), &Device::flex(), false));
-        self.trainer.set_trainable_weights(to_weights(global))?;
+        let weights = to_weights(global);
+        let cpu_copy = (!on_cpu).then(|| ParamStore::upload(weights.iter(), &Device::flex(), false));
+        self.trainer.set_trainable_weights(weights)?;
         let trainable = cpu_copy.unwrap_or_else(|| self.trainer.trainable_store());
         self.global_cpu = self.global_cpu.with_trainable(&trainable);
         Ok(())

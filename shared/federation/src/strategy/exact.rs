@@ -48,10 +48,17 @@ enum High {
 const SPARSE_SHARE: usize = 8;
 
 impl High {
-    fn get(&self, slot: usize) -> i64 {
+    /// Every one of the `len` slots' high words, in slot order: the map's few walked in order beside the slots,
+    /// not looked up once per slot.
+    fn words(&self, len: usize) -> Box<dyn Iterator<Item = i64> + '_> {
         match self {
-            Self::Sparse(map) => map.get(&slot).copied().unwrap_or(0),
-            Self::Dense(words) => words[slot],
+            Self::Dense(words) => Box::new(words.iter().copied()),
+            Self::Sparse(map) => {
+                let mut held: Vec<(usize, i64)> = map.iter().map(|(&slot, &word)| (slot, word)).collect();
+                held.sort_unstable();
+                let mut held = held.into_iter().peekable();
+                Box::new((0..len).map(move |slot| held.next_if(|&(s, _)| s == slot).map_or(0, |(_, word)| word)))
+            }
         }
     }
 
@@ -119,8 +126,8 @@ impl ExactSum {
         let sums = self
             .low
             .iter()
-            .enumerate()
-            .map(|(slot, &low)| (i128::from(self.high.get(slot)) << 64) + i128::from(low))
+            .zip(self.high.words(self.len))
+            .map(|(&low, high)| (i128::from(high) << 64) + i128::from(low))
             .chain(std::iter::repeat_n(0, unset));
         Ok(sums.map(move |s| s as f64 / SCALE / divisor))
     }
@@ -209,6 +216,22 @@ mod tests {
                 assert_eq!(f64::from_bits(sums[0][slot]), reference(&terms), "slot {slot}");
             }
         }
+        // A few slots with a high word among many (5 and 40; the others' sums stay within i64): kept by slot, each
+        // read back at its own slot.
+        let small = 2f64.powi(-10);
+        let value = |slot: usize| match slot {
+            5 => 7.0,
+            40 => -7.0,
+            _ => small,
+        };
+        let mut sum = ExactSum::zeros(64);
+        for _ in 0..2 {
+            sum.add(0, 1 << 20, || (0..64).map(value)).unwrap();
+        }
+        assert!(matches!(&sum.high, High::Sparse(map) if map.len() == 2));
+        let means: Vec<f64> = sum.divided_by(7.0).unwrap().collect();
+        let twice = |v: f64| reference(&[(1 << 20, v), (1 << 20, v)]);
+        assert_eq!((means[5], means[40], means[6], means[63]), (twice(7.0), twice(-7.0), twice(small), twice(small)));
         // Many slots with a high word: the map gives way to a word for every slot, and the sums stay exact.
         let mut sum = ExactSum::zeros(16);
         sum.add(0, 1 << 20, || [7.0; 16].into_iter()).unwrap();

@@ -6,7 +6,7 @@
 use burn::tensor::activation::{silu, softmax};
 use burn::tensor::{Bool, Device, Tensor, TensorData};
 
-use crate::weights::ParamStore;
+use crate::weights::{ParamStore, as_f32};
 
 /// `y = x Wᵀ + b`, weights stored as the checkpoint stores them ([out, in]).
 #[derive(Debug, Clone)]
@@ -31,7 +31,7 @@ impl Linear {
     /// # Shapes
     /// - x: `[..., in]` → `[..., out]`
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        burn::tensor::module::linear(x, self.weight_t.clone(), self.bias.clone())
+        burn::tensor::module::linear(x, as_f32(self.weight_t.clone()), self.bias.clone().map(as_f32))
     }
 }
 
@@ -53,7 +53,7 @@ impl LayerNorm {
         let centered = x - mean;
         let var = centered.clone().square().mean_dim(D - 1);
         let normed = centered / (var + self.eps).sqrt();
-        normed * self.weight.clone().unsqueeze() + self.bias.clone().unsqueeze()
+        normed * as_f32(self.weight.clone()).unsqueeze() + as_f32(self.bias.clone()).unsqueeze()
     }
 }
 
@@ -71,7 +71,7 @@ impl RmsNorm {
 
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
         let variance = x.clone().square().mean_dim(D - 1);
-        x * (variance + self.eps).sqrt().recip() * self.weight.clone().unsqueeze()
+        x * (variance + self.eps).sqrt().recip() * as_f32(self.weight.clone()).unsqueeze()
     }
 }
 

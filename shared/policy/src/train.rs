@@ -15,7 +15,7 @@ use crate::config::SmolVlaConfig;
 use crate::error::PolicyError;
 use crate::smolvla::{FlowMatchingOutput, SmolVla, gaussian_noise, sample_times};
 use crate::vlm_with_expert::ContextKv;
-use crate::weights::{HostTensor, ParamStore, WeightMap, check_keys};
+use crate::weights::{HostTensor, ParamStore, WeightMap, check_keys, check_shapes};
 
 /// AdamW hyper-parameters (LeRobot's SmolVLA preset by default).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -83,7 +83,30 @@ impl Trainer {
             specs.iter().filter(|s| s.trainable).map(|s| s.name.as_str()).collect();
         let (trainable, frozen): (WeightMap, WeightMap) =
             weights.into_iter().partition(|(k, _)| trainable_names.contains(k.as_str()));
-        let frozen = ParamStore::upload_owned(frozen, device, false);
+        Self::with_frozen(cfg, ParamStore::upload_owned(frozen, device, false), trainable, device, seed)
+    }
+
+    /// [`Trainer::taking`] of a checkpoint in two parts: the frozen tensors already on `device` (kept in the dtype
+    /// they are stored in there, e.g. bf16 from [`ParamStore::from_safetensors`]) and the trainable ones, which it
+    /// takes. Together they must be the configuration's tensors, each part its own.
+    pub fn with_frozen(
+        cfg: &SmolVlaConfig,
+        frozen: ParamStore,
+        trainable: WeightMap,
+        device: &Device,
+        seed: u64,
+    ) -> Result<Self, PolicyError> {
+        let specs = cfg.param_specs();
+        let shapes = frozen.flat().map(|(k, _, s)| (k.as_str(), s.as_slice()));
+        check_shapes(&specs, shapes.chain(trainable.iter().map(|(k, t)| (k.as_str(), t.shape.as_slice()))), "weights")?;
+        let misplaced: Vec<&str> =
+            specs.iter().filter(|s| s.trainable == frozen.contains(&s.name)).map(|s| s.name.as_str()).collect();
+        if !misplaced.is_empty() {
+            return Err(PolicyError::Input(format!(
+                "these tensors are in the wrong part (frozen or trainable) of the weights: {}",
+                misplaced.join(", ")
+            )));
+        }
         let trainable_store = ParamStore::upload_owned(trainable, device, true);
         let model = SmolVla::new(cfg, &frozen.overlaid(&trainable_store));
         let trainable = trainable_store.flat().map(|(k, t, s)| (k.clone(), (t.clone(), s.clone()))).collect();

@@ -6,7 +6,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 
 use crate::config::{CONNECTOR_KEY, SmolVlaConfig, VISION_PREFIX, VisionConfig};
 use crate::layers::{LayerNorm, Linear, attention};
-use crate::weights::ParamStore;
+use crate::weights::{ParamStore, as_f32};
 
 #[derive(Debug, Clone)]
 struct EncoderLayer {
@@ -113,7 +113,7 @@ impl VisionTower {
         let device = x.device();
         let ids = self.position_ids(rows, cols);
         let ids = Tensor::<1, Int>::from_data(TensorData::new(ids, [rows * cols]), &device);
-        let pos = self.position_embedding.clone().select(0, ids).unsqueeze::<3>();
+        let pos = as_f32(self.position_embedding.clone().select(0, ids)).unsqueeze::<3>();
         let mut x = x + pos;
         for layer in &self.layers {
             x = layer.forward(x);

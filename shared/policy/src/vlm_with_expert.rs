@@ -16,7 +16,7 @@ use burn::tensor::{Int, Tensor, TensorData};
 use crate::config::{EXPERT_PREFIX, SmolVlaConfig, TEXT_PREFIX, TextConfig};
 use crate::layers::{DecoderLayer, Linear, RmsNorm, Rope, attention, bool_tensor};
 use crate::vision::{Connector, VisionTower};
-use crate::weights::ParamStore;
+use crate::weights::{ParamStore, as_f32};
 
 /// The frozen backbone.
 #[derive(Debug, Clone)]
@@ -74,7 +74,7 @@ impl Vlm {
     pub fn embed_language(&self, tokens: &[i64], batch: usize, len: usize) -> Tensor<3> {
         let device = self.embed_tokens.device();
         let ids = Tensor::<1, Int>::from_data(TensorData::new(tokens.to_vec(), [batch * len]), &device);
-        self.embed_tokens.clone().select(0, ids).reshape([batch, len, self.hidden])
+        as_f32(self.embed_tokens.clone().select(0, ids)).reshape([batch, len, self.hidden])
     }
 
     pub fn final_norm(&self, x: Tensor<3>) -> Tensor<3> {

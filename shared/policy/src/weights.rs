@@ -6,7 +6,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorCreationOptions, TensorData};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
@@ -65,29 +65,39 @@ pub fn parse_safetensors(bytes: &[u8], path: &Path) -> Result<WeightMap, PolicyE
 }
 
 fn parse_checkpoint(bytes: &[u8], path: &Path) -> Result<(WeightMap, StoredDtype), PolicyError> {
-    let st = SafeTensors::deserialize(bytes)
-        .map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
     let mut out = WeightMap::new();
-    // Every tensor read is a float one (any other dtype is refused below): bf16 when all of them are.
+    // Every tensor read is a float one (any other dtype is refused): bf16 when all of them are.
     let mut all_bf16 = true;
-    for (key, view) in st.tensors() {
-        if NORMALIZER_PREFIXES.iter().any(|p| key.starts_with(p)) {
-            continue;
-        }
+    for (key, view) in checkpoint_tensors(bytes, path)? {
         all_bf16 &= view.dtype() == Dtype::BF16;
-        let data = decode_floats(view.dtype(), view.data()).ok_or_else(|| PolicyError::Dtype {
-            path: path.into(),
-            key: key.clone(),
-            dtype: format!("{:?}", view.dtype()),
-        })?;
-        let key = match key.strip_prefix("model._orig_mod.") {
-            Some(rest) => format!("model.{rest}"),
-            None => key,
-        };
+        let data = decode_floats(view.dtype(), view.data()).ok_or_else(|| dtype_error(path, &key, view.dtype()))?;
         out.insert(key, HostTensor::new(view.shape().to_vec(), data));
     }
     let dtype = if all_bf16 && !out.is_empty() { StoredDtype::Bf16 } else { StoredDtype::F32 };
     Ok((out, dtype))
+}
+
+/// The tensors of a safetensors file by the names the model asks for: the `model._orig_mod.` prefix torch.compile
+/// leaves stripped, legacy normaliser buffers dropped.
+fn checkpoint_tensors<'a>(
+    bytes: &'a [u8],
+    path: &Path,
+) -> Result<Vec<(String, safetensors::tensor::TensorView<'a>)>, PolicyError> {
+    let st = SafeTensors::deserialize(bytes)
+        .map_err(|e| PolicyError::Safetensors { path: path.into(), message: e.to_string() })?;
+    Ok(st
+        .tensors()
+        .into_iter()
+        .filter(|(key, _)| !NORMALIZER_PREFIXES.iter().any(|p| key.starts_with(p)))
+        .map(|(key, view)| match key.strip_prefix("model._orig_mod.") {
+            Some(rest) => (format!("model.{rest}"), view),
+            None => (key, view),
+        })
+        .collect())
+}
+
+fn dtype_error(path: &Path, key: &str, dtype: Dtype) -> PolicyError {
+    PolicyError::Dtype { path: path.into(), key: key.into(), dtype: format!("{dtype:?}") }
 }
 
 /// Little-endian F32/BF16/F16 bytes to f32; None for any other dtype.
@@ -289,6 +299,12 @@ pub fn init_random(specs: &[ParamSpec], seed: u64) -> WeightMap {
         .collect()
 }
 
+/// `weight` in f32 for computing with it: a no-op for an f32 tensor, a copy of a bf16 one (exact: every bf16 is an
+/// f32) that lives as long as the operation using it.
+pub fn as_f32<const D: usize>(weight: Tensor<D>) -> Tensor<D> {
+    weight.cast(burn::tensor::FloatDType::F32)
+}
+
 /// Tensors on a device, by LeRobot key. Layers take their weights from here by name, so the
 /// checkpoint's own names are the only mapping there is.
 #[derive(Debug, Clone)]
@@ -328,6 +344,29 @@ impl ParamStore {
         Self { tensors, reads: None }
     }
 
+    /// The tensors of a safetensors file's bytes (`path` names it in errors) as constants on `device`, read one at
+    /// a time (no f32 copy of the whole file is ever held). With `keep_bf16` a BF16 tensor stays BF16 there: half
+    /// the memory of f32 (0.7 GB instead of 1.4 for `smolvla_base`'s frozen tensors, in a browser's 4 GiB), and
+    /// the same results, the layers casting each weight to f32 where they use it (see [`ParamStore::get`]); every
+    /// other float tensor becomes f32. Only for a device with bf16 storage: the CPU's.
+    pub fn from_safetensors(bytes: &[u8], path: &Path, device: &Device, keep_bf16: bool) -> Result<Self, PolicyError> {
+        let mut tensors = BTreeMap::new();
+        for (key, view) in checkpoint_tensors(bytes, path)? {
+            let len = view.shape().iter().product::<usize>();
+            let data = if keep_bf16 && view.dtype() == Dtype::BF16 {
+                let words = view.data().chunks_exact(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]])).collect();
+                TensorData::new::<half::bf16, _>(words, [len])
+            } else {
+                let values =
+                    decode_floats(view.dtype(), view.data()).ok_or_else(|| dtype_error(path, &key, view.dtype()))?;
+                TensorData::new(values, [len])
+            };
+            let options = TensorCreationOptions::new(device.clone()).with_dtype(data.dtype());
+            tensors.insert(key, (Tensor::<1>::from_data(data, options), view.shape().to_vec()));
+        }
+        Ok(Self { tensors, reads: None })
+    }
+
     pub fn from_flat(tensors: BTreeMap<String, (Tensor<1>, Vec<usize>)>) -> Self {
         Self { tensors, reads: None }
     }
@@ -345,8 +384,10 @@ impl ParamStore {
         Self { tensors, reads: self.reads.clone() }
     }
 
-    /// The tensor `name` in its checkpoint shape. Panics on an unknown name: every name asked for
-    /// comes from `SmolVlaConfig::param_specs`, which the loader has already checked against.
+    /// The tensor `name` in its checkpoint shape and stored dtype (f32, or bf16 from
+    /// [`ParamStore::from_safetensors`]: a layer holding one computes with [`as_f32`] of it, at use). Panics on an
+    /// unknown name: every name asked for comes from `SmolVlaConfig::param_specs`, which the loader has already
+    /// checked against.
     pub fn get<const D: usize>(&self, name: &str) -> Tensor<D> {
         if let Some(reads) = &self.reads {
             reads.lock().expect("reads lock").insert(name.to_owned());
@@ -355,6 +396,10 @@ impl ParamStore {
         let dims: [usize; D] =
             shape.as_slice().try_into().unwrap_or_else(|_| panic!("parameter {name} has rank {}", shape.len()));
         flat.clone().reshape(dims)
+    }
+
+    pub fn contains(&self, name: &str) -> bool {
+        self.tensors.contains_key(name)
     }
 
     pub fn flat(&self) -> impl Iterator<Item = (&String, &Tensor<1>, &Vec<usize>)> {

@@ -1,10 +1,12 @@
 //! Training the tiny SmolVLA: the loss falls on a fixed batch and the frozen tensors never move.
 
-use burn::tensor::Device;
+use std::path::Path;
+
+use burn::tensor::{DType, Device};
 use fedvla_policy::batch::Prepared;
 use fedvla_policy::vlm_with_expert::ContextKv;
-use fedvla_policy::weights::init_random;
-use fedvla_policy::{Batch, SmolVlaConfig, Trainer};
+use fedvla_policy::weights::{ParamStore, host_refs, init_random, parse_safetensors, safetensors_bytes_as};
+use fedvla_policy::{Batch, SmolVlaConfig, StoredDtype, Trainer, WeightMap};
 
 mod rules;
 
@@ -154,4 +156,65 @@ fn cached_context_rows_give_the_loss_and_gradients_of_the_full_forward() {
             }
         }
     }
+}
+
+/// Frozen tensors kept in bf16 on the CPU (how a browser holds `smolvla_base`'s within wasm32's 4 GiB) train as the
+/// same values decoded to f32: the layers cast each weight to f32 where they use it, and every bf16 is an f32.
+#[test]
+fn frozen_tensors_kept_in_bf16_train_as_the_same_values_decoded_to_f32() {
+    let cfg = SmolVlaConfig::tiny();
+    let specs = cfg.param_specs();
+    let device = Device::flex().autodiff();
+    let bf16_file = |trainable: bool| {
+        let part: WeightMap = init_random(&specs, 1)
+            .into_iter()
+            .filter(|(k, _)| specs.iter().any(|s| s.name == *k && s.trainable == trainable))
+            .collect();
+        safetensors_bytes_as(host_refs(&part), StoredDtype::Bf16).unwrap()
+    };
+    let (frozen_file, trainable_file) = (bf16_file(false), bf16_file(true));
+    let trainable = parse_safetensors(&trainable_file, Path::new("trainable")).unwrap();
+    let mut decoded = parse_safetensors(&frozen_file, Path::new("frozen")).unwrap();
+    decoded.extend(trainable.clone());
+
+    let kept = ParamStore::from_safetensors(&frozen_file, Path::new("frozen"), &device, true).unwrap();
+    assert!(kept.flat().all(|(_, t, _)| t.dtype() == DType::BF16), "the frozen tensors stay bf16");
+    let mut in_bf16 = Trainer::with_frozen(&cfg, kept, trainable, &device, 5).unwrap();
+    let mut in_f32 = Trainer::new(&cfg, &decoded, &device, 5).unwrap();
+    let batch = Batch::random(&cfg, 2, 3);
+    for step in 0..3 {
+        let (noise, time) = in_f32.sample_noise_and_time(2);
+        let (a, grads_f32) = in_f32.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
+        let (b, grads_bf16) = in_bf16.train_step_with(&batch, noise, &time, 1e-3).unwrap();
+        assert!((a.loss - b.loss).abs() <= 1e-6, "step {step}: loss {} in f32, {} from bf16", a.loss, b.loss);
+        // The cast weights are contiguous where the f32 ones are transposed views, so matmuls sum in another order:
+        // rounding, which each AdamW step (its per-coordinate scaling enlarges it on gradients near zero) carries
+        // into the next step's gradients. A wrong value anywhere would be off by far more.
+        for (name, g) in &grads_f32 {
+            for (x, y) in g.data.iter().zip(&grads_bf16[name].data) {
+                let tolerance = 1e-6 + 1e-4 * x.abs();
+                assert!((x - y).abs() <= tolerance, "step {step}, {name}: gradient {x} in f32, {y} from bf16");
+            }
+        }
+    }
+    // The frozen tensors come back as the file's values, in f32.
+    assert_eq!(in_bf16.frozen_weights(), parse_safetensors(&frozen_file, Path::new("frozen")).unwrap());
+}
+
+/// A checkpoint split with a trainable tensor among the frozen ones is refused, naming it.
+#[test]
+fn a_trainable_tensor_among_the_frozen_ones_is_refused_by_name() {
+    let cfg = SmolVlaConfig::tiny();
+    let device = Device::flex().autodiff();
+    let mut frozen = init_random(&cfg.param_specs(), 1);
+    let name = cfg.param_specs().into_iter().find(|s| s.trainable).unwrap().name;
+    let trainable: WeightMap = frozen
+        .iter()
+        .filter(|(k, _)| cfg.param_specs().iter().any(|s| s.name == **k && s.trainable && **k != name))
+        .map(|(k, t)| (k.clone(), t.clone()))
+        .collect();
+    frozen.retain(|k, _| !trainable.contains_key(k));
+    let store = ParamStore::upload_owned(frozen, &device, false);
+    let err = Trainer::with_frozen(&cfg, store, trainable, &device, 5).err().expect("refused").to_string();
+    assert!(err.contains(&name), "{err}");
 }

@@ -62,6 +62,12 @@ const fmtBytes = (n) => n >= 1 << 20 ? (n / (1 << 20)).toFixed(1) + " MiB" : n >
 
 const state = { contributions: 0, up: 0, down: 0, gpu: "", reconnectDelay: RECONNECT_MIN_MS, dataset: null };
 
+// The volunteer's wasm memory: the most it has held at once (it never shrinks), against wasm32's 4 GiB.
+function showMemory(bytes) {
+  $("memory").textContent = `${fmtBytes(bytes)} of wasm32's 4096 MiB`;
+  $("memory").dataset.bytes = bytes;
+}
+
 function show(kind, s) {
   switch (kind) {
     case "identity": $("public-key").textContent = s.public_key; break;
@@ -111,6 +117,7 @@ function show(kind, s) {
       $("progress").max = s.steps;
       $("progress").value = s.step;
       $("stage").textContent = "training";
+      showMemory(s.wasm_memory_bytes);
       if (s.first_step_seconds !== undefined) $("first-step").textContent = `${s.first_step_seconds.toFixed(1)} s (downloads, model build and the step)`;
       break;
     case "trained": $("loss").textContent = `${s.train_loss.toFixed(4)} (round mean)`; $("stage").textContent = "uploading the update"; break;
@@ -120,6 +127,7 @@ function show(kind, s) {
       $("contributions").textContent = state.contributions;
       $("bytes").textContent = `${fmtBytes(s.total_up)} / ${fmtBytes(state.down + s.total_down)}`;
       $("stage").textContent = `update of round ${s.round} sent (${fmtBytes(s.bytes)})`;
+      showMemory(s.wasm_memory_bytes);
       break;
     case "rollout":
       $("stage").textContent = `sim rollout ${s.episode + 1} of ${s.episodes}`;

@@ -1,4 +1,5 @@
-//! Small bridges to the browser: a monotonic clock, sleeping, and yielding to the page between steps.
+//! Small bridges to the browser: a monotonic clock, sleeping, yielding to the page between steps, and the size of
+//! the module's memory.
 
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
@@ -30,6 +31,13 @@ pub async fn sleep_ms(ms: i32) {
 /// Gives the page a turn (rendering, input, socket events) between long computations.
 pub async fn yield_to_page() {
     sleep_ms(0).await;
+}
+
+/// Bytes of this module's linear memory: the most the volunteer has held at once (wasm memory grows and never
+/// shrinks; wasm32 allows 4 GiB), the figure a base-size round must fit.
+pub fn wasm_memory_bytes() -> f64 {
+    let buffer = wasm_bindgen::memory().unchecked_into::<js_sys::WebAssembly::Memory>().buffer();
+    buffer.unchecked_into::<js_sys::ArrayBuffer>().byte_length() as f64
 }
 
 /// A JS error value with `message`.

@@ -17,7 +17,7 @@ use serde_json::json;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
 
-use crate::browser::{js_error, now_seconds, sleep_ms, yield_to_page};
+use crate::browser::{js_error, now_seconds, sleep_ms, wasm_memory_bytes, yield_to_page};
 use crate::download::{Source, cached, fetch_with_progress};
 use crate::film::{CanvasView, Recorder};
 use crate::own_dataset::{PickedFolder, pack_picked_folder};
@@ -224,7 +224,8 @@ impl LocalTrainer for BrowserTrainer {
         self.inner
             .train_with(task, async |p| {
                 let now = now_seconds();
-                let mut fields = json!({ "round": round, "step": p.step, "steps": p.steps, "loss": p.loss, "step_seconds": now - last });
+                let mut fields = json!({ "round": round, "step": p.step, "steps": p.steps, "loss": p.loss, "step_seconds": now - last,
+                                         "wasm_memory_bytes": wasm_memory_bytes() });
                 if !*first_step_reported {
                     fields["first_step_seconds"] = json!(now - started);
                     *first_step_reported = true;
@@ -284,7 +285,8 @@ fn report(status: &StatusSink, event: ClientEvent) {
         }
         ClientEvent::Uploaded { round, bytes, total_up, total_down } => status.send(
             "uploaded",
-            json!({ "round": round, "bytes": bytes, "total_up": total_up, "total_down": total_down }),
+            json!({ "round": round, "bytes": bytes, "total_up": total_up, "total_down": total_down,
+                    "wasm_memory_bytes": wasm_memory_bytes() }),
         ),
         ClientEvent::RolledOut { round, episodes, successes } => {
             status.send("rollouts", json!({ "round": round, "episodes": episodes, "successes": successes }))

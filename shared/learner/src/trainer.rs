@@ -65,17 +65,43 @@ impl SmolVlaTrainer {
         let on_cpu = *device == cpu;
         let own_copy = (!on_cpu).then(|| ParamStore::upload(weights.iter(), &cpu, false));
         let trainer = Trainer::taking(cfg, weights, device, seed)?;
+        Ok(Self::around(trainer, own_copy, examples, backend))
+    }
+
+    /// [`SmolVlaTrainer::new`] on the CPU (`device`, autodiff enabled) from the frozen tensors already there, in
+    /// the dtype they are stored in (bf16 kept bf16: a browser's CPU fallback holds `smolvla_base`'s in 0.7 GB,
+    /// not 1.4), and the trainable ones, which it takes. The evaluation model shares both with the trainer.
+    pub fn on_cpu_with_frozen(
+        cfg: &SmolVlaConfig,
+        frozen: ParamStore,
+        trainable: WeightMap,
+        examples: ShardExamples,
+        seed: u64,
+        device: &Device,
+        backend: &str,
+    ) -> Result<Self, BoxError> {
+        if *device != Device::flex() {
+            return Err(format!("frozen tensors held once need the CPU, not {device:?}").into());
+        }
+        let trainer = Trainer::with_frozen(cfg, frozen, trainable, device, seed)?;
+        Ok(Self::around(trainer, None, examples, backend))
+    }
+
+    /// The trainer with its evaluation model: `own_copy` (the whole model on the CPU) when training elsewhere,
+    /// otherwise the trainer's own tensors.
+    fn around(trainer: Trainer, own_copy: Option<ParamStore>, examples: ShardExamples, backend: &str) -> Self {
+        let cfg = trainer.model.cfg.clone();
         let store = own_copy.unwrap_or_else(|| trainer.frozen_store().overlaid(&trainer.trainable_store()));
         let held_out = HeldOut::new(&examples.held_out_rows);
-        Ok(Self {
+        Self {
             trainer,
-            global_cpu: SmolVla::new(cfg, &store),
+            global_cpu: SmolVla::new(&cfg, &store),
             examples,
             held_out,
             backend: backend.into(),
             rollout_tasks: None,
             cache: cfg.backbone_frozen().then(|| FeatureCache::new(DEFAULT_CACHE_BYTES)),
-        })
+        }
     }
 
     /// With a frozen-feature cache of `budget_bytes` (0: none, every step computes its context afresh), when the

@@ -14,8 +14,8 @@ use burn::tensor::Device;
 use fedvla_data::shard::verify_shard_bytes;
 use fedvla_data::{ClientShard, ShardFileManifest};
 use fedvla_federation::{BoxError, VolunteerSetup, WorkloadKind, routes};
-use fedvla_policy::weights::parse_safetensors;
-use fedvla_policy::{SmolVlaConfig, Tokenizer};
+use fedvla_policy::weights::{ParamStore, parse_safetensors};
+use fedvla_policy::{SmolVlaConfig, Tokenizer, WeightMap};
 
 use crate::examples::ShardExamples;
 use crate::rollout::SimTasks;
@@ -99,13 +99,38 @@ pub async fn smolvla_volunteer_on(
     let frozen_url = setup.frozen_url.as_deref().ok_or("the server offers no frozen weights")?;
     // Each download's bytes go as soon as they are parsed, before the trainer uploads its tensors (at the base
     // size the frozen ones are 0.7 GB in bf16).
-    let frozen = fetch.get(frozen_url, "frozen weights", Some(frozen_url)).await?;
-    let mut weights = parse_safetensors(&frozen, Path::new("frozen weights"))?;
-    drop(frozen);
+    let bytes = fetch.get(frozen_url, "frozen weights", Some(frozen_url)).await?;
+    let frozen_name = Path::new("frozen weights");
+    // On the CPU the frozen tensors go straight onto the device in the dtype they came in (bf16 for a bf16
+    // checkpoint) and are held once; a GPU gets them in f32 (WebGPU has no bf16) and the CPU keeps its own copy.
+    let on_cpu = *device == Device::flex();
+    let frozen = if on_cpu {
+        Frozen::OnDevice(ParamStore::from_safetensors(&bytes, frozen_name, device, true)?)
+    } else {
+        Frozen::OnHost(parse_safetensors(&bytes, frozen_name)?)
+    };
+    drop(bytes);
     // Never cached: versions are numbered per run, so a kept version 3 could be another run's.
     let global = fetch.get(&routes::model(setup.model_version), "global model", None).await?;
-    weights.extend(parse_safetensors(&global, Path::new("global model"))?);
+    let trainable = parse_safetensors(&global, Path::new("global model"))?;
+    drop(global);
     let examples = ShardExamples::new(shard, &cfg)?;
     let tasks = SimTasks::from_wire(&setup.rollout_tasks)?;
-    Ok(SmolVlaTrainer::new(&cfg, weights, examples, volunteer_seed(name), device, backend)?.with_rollouts(tasks))
+    let seed = volunteer_seed(name);
+    let trainer = match frozen {
+        Frozen::OnDevice(frozen) => {
+            SmolVlaTrainer::on_cpu_with_frozen(&cfg, frozen, trainable, examples, seed, device, backend)?
+        }
+        Frozen::OnHost(mut weights) => {
+            weights.extend(trainable);
+            SmolVlaTrainer::new(&cfg, weights, examples, seed, device, backend)?
+        }
+    };
+    Ok(trainer.with_rollouts(tasks))
+}
+
+/// The downloaded frozen tensors, where the volunteer's device wants them.
+enum Frozen {
+    OnDevice(ParamStore),
+    OnHost(WeightMap),
 }

@@ -195,6 +195,39 @@ impl Browser {
         errors
     }
 
+    /// The largest peak RSS (`VmHWM`, kB) of this browser's renderer processes (the pages, the wasm volunteer's
+    /// memory included), found among chromedriver's descendants in /proc; None when none can be read.
+    pub fn renderer_peak_rss_kb(&self) -> Option<u64> {
+        let parent_of = |pid: u32| -> Option<u32> {
+            let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+            status.lines().find_map(|l| l.strip_prefix("PPid:")).and_then(|v| v.trim().parse().ok())
+        };
+        let descends_from_driver = |mut pid: u32| {
+            while pid > 1 {
+                if pid == self.driver.id() {
+                    return true;
+                }
+                let Some(parent) = parent_of(pid) else { return false };
+                pid = parent;
+            }
+            false
+        };
+        let peak_rss_kb = |pid: u32| -> Option<u64> {
+            let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).ok()?;
+            // Chromium rewrites its children's titles: their arguments are separated by spaces there, not NULs.
+            let is_renderer = cmdline.split(|&b| b == 0 || b == b' ').any(|arg| arg == b"--type=renderer");
+            let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+            let hwm = status.lines().find_map(|l| l.strip_prefix("VmHWM:"))?;
+            is_renderer.then(|| hwm.trim().trim_end_matches("kB").trim().parse().ok()).flatten()
+        };
+        std::fs::read_dir("/proc")
+            .ok()?
+            .filter_map(|entry| entry.ok()?.file_name().to_str()?.parse::<u32>().ok())
+            .filter(|&pid| descends_from_driver(pid))
+            .filter_map(peak_rss_kb)
+            .max()
+    }
+
     pub async fn quit(mut self) {
         self.session_command("DELETE", "", Value::Null).await;
         self.driver.kill().ok();

@@ -56,7 +56,7 @@ async fn joins_past_the_per_address_limit_are_refused_and_other_addresses_still_
     assert!(matches!(elsewhere.join_admitted().await, Some(ServerMessage::Welcome { .. })), "and joins");
     wait_status(&handle, |s| s.connected == 4).await;
     assert_eq!(refusals(&handle, ErrorCode::JoinRateLimited).await, 1);
-    handle.kill();
+    handle.kill().await;
 }
 
 #[tokio::test]
@@ -80,7 +80,7 @@ async fn a_connection_flooding_messages_is_closed_and_the_others_stay() {
     assert_eq!(refusals(&handle, ErrorCode::MessageRateLimited).await, 1);
     let (_late, _) = RawClient::join(&handle, "late").await;
     wait_status(&handle, |s| s.connected == 2).await;
-    handle.kill();
+    handle.kill().await;
 }
 
 #[tokio::test]
@@ -213,5 +213,5 @@ async fn an_update_that_finds_no_room_within_a_rounds_deadline_is_refused() {
     second.upload(round, &linreg_head(0.3, 0.3), linreg::train_examples(1) as u64).await;
     expect_error(second.recv().await, ErrorCode::UploadBudget);
     assert_eq!(refusals(&handle, ErrorCode::UploadBudget).await, 2, "the video and the update");
-    handle.kill();
+    handle.kill().await;
 }

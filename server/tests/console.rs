@@ -186,7 +186,7 @@ async fn every_console_route_wants_the_operator_token() {
     let no_checkpoint = request(&handle, "GET", "/console/api/checkpoint/0", Some(TOKEN), "").await;
     let message = no_checkpoint.error(StatusCode::NOT_FOUND);
     assert!(message.starts_with("round 0 has no LeRobot policy directory"), "{message}");
-    handle.kill();
+    handle.kill().await;
 }
 
 #[tokio::test]
@@ -201,7 +201,7 @@ async fn an_empty_operator_token_is_made_up_at_start() {
     assert_eq!(reply.status, StatusCode::OK);
     let empty = request(&handle, "GET", "/console/api/snapshot?token=", None, "").await;
     assert_eq!(empty.error(StatusCode::UNAUTHORIZED), "wrong operator token");
-    handle.kill();
+    handle.kill().await;
 }
 
 #[tokio::test]
@@ -466,7 +466,7 @@ async fn www_dir_pages_with_content_types_and_no_way_out() {
     assert_eq!(ranged.body, b"contents", "a range is of the file itself");
     // The API's own routes are not shadowed by the pages: a model answers as the API does (no session, no model).
     assert_eq!(request(&handle, "GET", "/model/0", None, "").await.status, StatusCode::UNAUTHORIZED);
-    handle.kill();
+    handle.kill().await;
 
     // No www dir at all: pages are 404s naming it, the API works.
     let cfg = console_config(&format!("www-dir={}", base.path().join("absent").display()));
@@ -476,5 +476,5 @@ async fn www_dir_pages_with_content_types_and_no_way_out() {
     let message = String::from_utf8(page.body).unwrap();
     assert!(message.contains("console.html") && message.contains("absent does not exist"), "{message}");
     assert_eq!(snapshot(&handle).await["run"]["state"], "running");
-    handle.kill();
+    handle.kill().await;
 }

@@ -17,7 +17,7 @@ async fn killed_after_round_one_then_resumed() {
     let handle = start(cfg, run_dir).await;
     let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, Some(2))).collect();
     wait_status(&handle, |s| s.completed_rounds == 1).await;
-    handle.kill();
+    handle.kill().await;
     for (task, _) in &clients {
         task.abort();
     }
@@ -83,7 +83,7 @@ async fn a_stateful_strategy_resumed_equals_the_uninterrupted_run() {
         let handle = start(cfg.clone(), run_dir).await;
         let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, Some(2))).collect();
         wait_status(&handle, |s| s.completed_rounds == 1).await;
-        handle.kill();
+        handle.kill().await;
         for (task, _) in &clients {
             task.abort();
         }

@@ -380,7 +380,7 @@ async fn client_shards_download_over_http_with_size_and_checksum() {
     }
     let another = fetch_shard(&transports[0], &routes::shard(1), &routes::shard_manifest(1)).await.unwrap_err();
     assert!(another.to_string().contains("403"), "{another}");
-    handle.kill();
+    handle.kill().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -405,7 +405,7 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
     let _stuck = spawn_clients(handle.addr(), 3, Some(2));
     let mut status = handle.status();
     status.wait_for(|s| s.completed_rounds == 1).await.unwrap();
-    handle.kill();
+    handle.kill().await;
     assert_eq!(rounds(), [0, 1]);
     let round_one = std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap();
 

@@ -189,7 +189,7 @@ async fn slow_heads_silent_sockets_and_one_socket_too_many_are_closed() {
     assert_eq!(status, 200, "{body}");
     let snapshot: serde_json::Value = serde_json::from_str(&body).unwrap();
     assert!(snapshot["run"]["refused_connections"].as_u64().unwrap() >= 1, "{}", snapshot["run"]);
-    handle.kill();
+    handle.kill().await;
 }
 
 /// What the server answers `name` identifying with its name's simulated key, asking for `shard`.
@@ -227,7 +227,7 @@ async fn names_are_bounded_and_the_registry_forgets_the_oldest() {
     let mut names: Vec<&str> = registry.volunteers.values().map(|b| b.name.as_str()).collect();
     names.sort_unstable();
     assert_eq!(names, ["b", "c"], "at most two keys, the first bound forgotten");
-    handle.kill();
+    handle.kill().await;
 }
 
 #[tokio::test]
@@ -272,7 +272,7 @@ async fn shards_and_client_ids_survive_a_restart() {
     }
     assert_eq!(before, [0, 1, 2]);
     let (_c, first_id) = RawClient::join(&handle, "w").await;
-    handle.kill();
+    handle.kill().await;
 
     let (run_dir, cfg) = RunDir::open(run_dir.path()).unwrap();
     let handle = start(cfg, run_dir).await;
@@ -282,7 +282,7 @@ async fn shards_and_client_ids_survive_a_restart() {
     }
     let (_c, second_id) = RawClient::join(&handle, "w").await;
     assert!(second_id > first_id, "client ids are never handed out twice: {first_id} then {second_id}");
-    handle.kill();
+    handle.kill().await;
 }
 
 /// Another key using a volunteer's name is refused (`name_taken`), and asking for its shard under another name too
@@ -334,7 +334,7 @@ async fn a_second_volunteer_using_anothers_name_gets_neither_its_shard_nor_its_s
             http(&handle, "GET", path, &[("authorization", &bearer(&alice_session))], Vec::new()).await;
         assert_eq!(status, 404, "{path} with its key's session: {body}");
     }
-    handle.kill();
+    handle.kill().await;
 
     let (run_dir, cfg) = RunDir::open(run_dir.path()).unwrap();
     let handle = start(cfg, run_dir).await;
@@ -343,7 +343,7 @@ async fn a_second_volunteer_using_anothers_name_gets_neither_its_shard_nor_its_s
         Some(ServerMessage::Admitted { setup, .. }) => assert_eq!(setup.shard_index, 1, "alice keeps her shard"),
         other => panic!("alice is admitted again, got {other:?}"),
     }
-    handle.kill();
+    handle.kill().await;
 }
 
 async fn admission_as(
@@ -367,7 +367,7 @@ async fn a_closed_federation_admits_only_the_keys_of_its_allow_list() {
     let handle = start(cfg.clone(), RunDir::create(base.path(), &cfg).unwrap()).await;
     expect_refusal(admission(&handle, "outsider", None).await, ErrorCode::Unauthorized, "allow-list");
     assert!(matches!(admission(&handle, "insider", None).await, Some(ServerMessage::Admitted { .. })));
-    handle.kill();
+    handle.kill().await;
 }
 
 /// A run with an auth token serves nothing without a session: every download and upload route answers 401

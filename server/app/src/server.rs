@@ -56,6 +56,8 @@ pub struct ServerHandle {
     coordinator: JoinHandle<Result<RunStatus, CoordinatorError>>,
     http: JoinHandle<std::io::Result<()>>,
     sockets: TaskTracker,
+    /// The coordinator's blocking jobs (see `Coordinator::jobs`).
+    jobs: TaskTracker,
 }
 
 /// Starts serving on `listener`; resumes after the last completed round if the run directory has one.
@@ -112,6 +114,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         None => volunteers,
     });
     let sockets = TaskTracker::new();
+    let jobs = TaskTracker::new();
     let state = AppState {
         socket: SocketState {
             events: events_tx,
@@ -161,6 +164,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
         sessions,
         norm_stats,
         dataset_stats,
+        jobs: jobs.clone(),
     };
     let addr = listener.local_addr()?;
     let coordinator = tokio::spawn(coordinator.run());
@@ -173,7 +177,7 @@ pub fn start(parts: ServerParts, listener: TcpListener) -> Result<ServerHandle, 
     } else {
         tracing::info!("console: {scheme}://{addr}/console  (token: operator-token of the run configuration)");
     }
-    Ok(ServerHandle { addr, cancel, status, operator_token, coordinator, http, sockets })
+    Ok(ServerHandle { addr, cancel, status, operator_token, coordinator, http, sockets, jobs })
 }
 
 impl ServerHandle {
@@ -214,10 +218,14 @@ impl ServerHandle {
         result
     }
 
-    /// Stops abruptly, as a crash would: tasks aborted mid-round, sockets dropped.
-    pub fn kill(self) {
+    /// Stops abruptly, as a crash would: tasks aborted mid-round, sockets dropped. Returns once no blocking job
+    /// of the coordinator's is left running (a crash would have stopped those too), so a server started next on the
+    /// same run directory finds it as this one left it.
+    pub async fn kill(self) {
         self.coordinator.abort();
         self.http.abort();
         self.cancel.cancel();
+        self.jobs.close();
+        self.jobs.wait().await;
     }
 }

@@ -41,7 +41,7 @@ impl Running {
         let strategy = Arc::clone(&self.c.strategy);
         let global = Arc::clone(&self.c.global);
         let encoding = self.c.config.encoding();
-        let concluded = blocking(move || {
+        let concluded = blocking(&self.c.jobs, move || {
             let strategy = strategy.lock().expect("strategy lock");
             let mut step =
                 conclude(strategy.as_ref(), &global, aggregation).map_err(|e| format!("aggregation failed: {e}"))?;
@@ -102,7 +102,8 @@ impl Running {
 
     pub(super) async fn evaluate(&mut self, round: u64, model: Arc<NamedTensors>) -> Result<EvalMetrics, BoxError> {
         let evaluator = Arc::clone(&self.c.evaluator);
-        let metrics = blocking(move || evaluator.lock().expect("evaluator lock").evaluate(&model)).await?;
+        let metrics =
+            blocking(&self.c.jobs, move || evaluator.lock().expect("evaluator lock").evaluate(&model)).await?;
         tracing::info!(round, ?metrics, "global model evaluated");
         Ok(metrics)
     }
@@ -139,7 +140,7 @@ impl Running {
         line.privacy = privacy;
         let (run_dir, exporters, global, config) =
             (self.c.run_dir.clone(), Arc::clone(&self.c.exporters), Arc::clone(&self.c.global), self.c.config.clone());
-        let (line, bytes) = blocking(move || -> Result<_, RunDirError> {
+        let (line, bytes) = blocking(&self.c.jobs, move || -> Result<_, RunDirError> {
             let sim = run_dir.save_model(round, &global, &state, &exporters, &config)?;
             line.global = (eval.is_some() || sim.is_some()).then_some(GlobalMetrics { eval, sim });
             run_dir.append_metrics(&line)?;

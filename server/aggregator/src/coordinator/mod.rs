@@ -107,7 +107,7 @@ impl Running {
                 self.c.config = config;
                 // Written back so that a resumed run goes on with them.
                 let (run_dir, config) = (self.c.run_dir.clone(), self.c.config.clone());
-                blocking(move || run_dir.write_config(&config)).await?;
+                blocking(&self.c.jobs, move || run_dir.write_config(&config)).await?;
                 new_settings.merge(changed);
             }
             if self.c.config.federated_stats && self.c.norm_stats.is_none() {
@@ -216,7 +216,7 @@ impl Running {
         };
         tracing::info!(round, clients = stats.clients, "normalisation statistics agreed by federated statistics");
         let (run_dir, record) = (self.c.run_dir.clone(), stats.clone());
-        blocking(move || run_dir.write_norm_stats(&record)).await?;
+        blocking(&self.c.jobs, move || run_dir.write_norm_stats(&record)).await?;
         self.adopt_stats(&stats)?;
         self.broadcast(ServerMessage::NormStats(stats.clone()));
         self.c.norm_stats = Some(stats);

@@ -13,6 +13,7 @@ use fedvla_federation::{
 };
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 
 use super::screen::NormScreen;
 use crate::config::RunConfig;
@@ -208,6 +209,10 @@ pub struct Coordinator {
     pub norm_stats: Option<NormalizationStats>,
     /// The dataset's statistics (`None` for a workload without any).
     pub dataset_stats: Option<NormalizationStats>,
+    /// The blocking jobs in flight (aggregation, evaluation, file writes): aborting the coordinator does not stop
+    /// one, so a server killed in a test waits for them, and nothing it started writes into the run directory
+    /// after it (where a restarted server would be sweeping).
+    pub jobs: TaskTracker,
 }
 
 pub(super) struct ClientEntry {
@@ -234,9 +239,9 @@ pub(super) struct Running {
     pub(super) screen: NormScreen,
 }
 
-/// Runs `f` on tokio's blocking pool (aggregation, evaluation, file writes), passing its panic on.
-pub(super) async fn blocking<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
-    match tokio::task::spawn_blocking(f).await {
+/// Runs `f` on tokio's blocking pool (aggregation, evaluation, file writes) as one of `jobs`, passing its panic on.
+pub(super) async fn blocking<T: Send + 'static>(jobs: &TaskTracker, f: impl FnOnce() -> T + Send + 'static) -> T {
+    match jobs.spawn_blocking(f).await {
         Ok(out) => out,
         Err(e) => std::panic::resume_unwind(e.into_panic()),
     }

@@ -72,13 +72,15 @@ fn dataset_of(dir: &Path, episodes: usize) -> std::path::PathBuf {
     root
 }
 
-/// LeRobot's switches (the backbone frozen), so that the wire carries only the expert's part.
+/// LeRobot's switches (the backbone frozen), so that the wire carries only the expert's part; FedAvg, whose
+/// example-weighted mean the tests check.
 fn config(dataset: &Path, out: &Path, seed: u64) -> RunConfig {
     RunConfig::default()
         .with_overrides(&format!(
             "workload=smolvla model-size=tiny dataset={} output-dir={} num-clients=3 min-clients=3 min-fit=3 \
-             num-server-rounds=2 eval-every=1 local-steps=3 batch-size=4 lr=0.001 seed={seed} max-frame-bytes=65536 \
-             round-deadline-ms=120000 rollout-episodes=1 train-expert-only=true freeze-vision-encoder=true",
+             strategy=fedavg num-server-rounds=2 eval-every=1 local-steps=3 batch-size=4 lr=0.001 seed={seed} \
+             max-frame-bytes=65536 round-deadline-ms=120000 rollout-episodes=1 train-expert-only=true \
+             freeze-vision-encoder=true",
             dataset.display(),
             out.display()
         ))

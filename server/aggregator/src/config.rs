@@ -665,7 +665,7 @@ mod tests {
     #[test]
     fn default_parses_and_round_trips() {
         let cfg = RunConfig::default();
-        assert_eq!(cfg.strategy, StrategyKind::Fedavg);
+        assert_eq!(cfg.strategy, StrategyKind::Fedavgm);
         assert_eq!(RunConfig::from_toml(&cfg.to_toml(), "resolved").unwrap(), cfg);
     }
 

@@ -28,11 +28,12 @@ use tokio::task::JoinHandle;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
-/// Small, fast defaults; `overrides` as on the command line.
+/// Small, fast defaults under FedAvg (the tests check its example-weighted mean); `overrides` as on the command
+/// line.
 pub fn config(overrides: &str) -> RunConfig {
     RunConfig::default()
         .with_overrides(&format!(
-            "num-server-rounds=2 eval-every=1 min-clients=3 min-fit=3 fraction-fit=1.0 local-steps=30 batch-size=8 \
+            "strategy=fedavg num-server-rounds=2 eval-every=1 min-clients=3 min-fit=3 fraction-fit=1.0 local-steps=30 batch-size=8 \
              lr=0.05 round-deadline-ms=10000 max-frame-bytes=64 {overrides}"
         ))
         .expect("test config is valid")

@@ -226,12 +226,17 @@ fn record_episodes(
     events: &mpsc::Sender<GenProgress>,
 ) -> anyhow::Result<Vec<u64>> {
     let mut skipped = Vec::new();
+    // Per task, as `opts.tasks` lists them: the expert's tries and successes, for the error that gives up.
+    let mut tries = vec![(0usize, 0usize); opts.tasks.len()];
     let mut sent = 0;
     let mut seed = opts.seed;
     while sent < opts.episodes {
-        let task = opts.tasks[sent % opts.tasks.len()];
+        let slot = sent % opts.tasks.len();
+        let task = opts.tasks[slot];
+        tries[slot].0 += 1;
         match record_episode(task, seed, opts.image_size, ActionNoise::degrees(opts.action_noise_degrees)) {
             Ok(episode) => {
+                tries[slot].1 += 1;
                 if episodes.send(RecordedEpisode { seed, episode }).is_err() {
                     break;
                 }
@@ -240,12 +245,25 @@ fn record_episodes(
             Err(frames) => {
                 skipped.push(seed);
                 let _ = events.send(GenProgress::Skipped { task, seed, frames });
-                anyhow::ensure!(
-                    skipped.len() <= max_failures,
-                    "the expert failed on {} seeds ({skipped:?}) before {} episodes succeeded; giving up",
-                    skipped.len(),
-                    opts.episodes
-                );
+                if skipped.len() > max_failures {
+                    let tally: Vec<String> = opts
+                        .tasks
+                        .iter()
+                        .zip(&tries)
+                        .map(|(task, (tried, succeeded))| format!("{task} {succeeded} of {tried}"))
+                        .collect();
+                    anyhow::bail!(
+                        "the expert failed on {} seeds ({}..={}) before {} episodes succeeded; giving up. Its \
+                         successes under {}° of action noise: {}. A task whose expert rarely succeeds under that \
+                         noise needs less (`--action-noise`, `dataset-action-noise`) or no place in the dataset",
+                        skipped.len(),
+                        skipped[0],
+                        seed,
+                        opts.episodes,
+                        opts.action_noise_degrees,
+                        tally.join(", ")
+                    );
+                }
             }
         }
         seed = seed.checked_add(1).context("ran out of seeds")?;

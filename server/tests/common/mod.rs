@@ -33,8 +33,8 @@ use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 pub fn config(overrides: &str) -> RunConfig {
     RunConfig::default()
         .with_overrides(&format!(
-            "strategy=fedavg num-server-rounds=2 eval-every=1 min-clients=3 min-fit=3 fraction-fit=1.0 local-steps=30 batch-size=8 \
-             lr=0.05 round-deadline-ms=10000 max-frame-bytes=64 {overrides}"
+            "strategy=fedavg num-server-rounds=2 eval-every=1 min-clients=3 min-fit=3 fraction-fit=1.0 local-steps=30 \
+             batch-size=8 lr=0.05 round-deadline-ms=10000 max-frame-bytes=64 {overrides}"
         ))
         .expect("test config is valid")
 }

@@ -3,6 +3,11 @@
 //! frame. Picking tasks (the bowl, the stack) go above the cube, descend, close, lift, go over
 //! the place, lower, open and retreat; pushing goes down behind the cube, along the line to the
 //! target, back and up.
+//!
+//! Picks are planned once (and again after a missed grasp). A push goes in short strokes, each
+//! aimed from where the cube is at the target: pushed in one open-loop stroke, a cube kicked off
+//! its line by a perturbed arm (the recovery demonstrations, [`crate::perturbation`]) ends centimetres
+//! from the target.
 
 use crate::arm::{self, FINGER_TIP_Y, FIXED_FINGER_FACE_X, FIXED_FINGER_THICKNESS, GRIPPER, GRIPPER_LINK, JOINT_COUNT};
 use crate::arrangement::PUSH_APPROACH;
@@ -45,6 +50,12 @@ const PUSH_ABOVE_TIP: f32 = 0.008;
 const PUSH_SPEED: f32 = 0.03;
 /// How far the finger backs off the pushed cube before it lifts, metres.
 const PUSH_BACK_OFF: f32 = 0.01;
+/// How far one stroke of a push moves the cube, metres: after each the expert aims again.
+const PUSH_STROKE: f32 = 0.015;
+/// How near the target the cube's centre has to be for the push to end, metres.
+const PUSH_CLOSE_ENOUGH: f32 = 0.008;
+/// Strokes a push takes at most before it backs off wherever the cube is.
+const MAX_STROKES: u32 = 16;
 
 /// One point of the plan: where the tool point goes, how the jaw is turned, what the gripper
 /// is told, and in how many frames it gets there from the previous point.
@@ -63,6 +74,16 @@ impl Waypoint {
     }
 }
 
+/// What the expert does once a plan has been played to its end.
+#[derive(Clone, Copy, Debug)]
+enum Then {
+    /// Holds the plan's last pose: the demonstration is over.
+    Hold,
+    /// Pushes on to `target`: another stroke aimed from where the cube is, or the back-off once it
+    /// is there.
+    PushOn { target: Vec3, side: FingerSide, strokes: u32 },
+}
+
 /// A demonstration as planned from one moment of the episode.
 #[derive(Clone, Debug)]
 struct Plan {
@@ -73,11 +94,12 @@ struct Plan {
     /// For a plan that grasps, the index of the waypoint that ends the lift: if the task's cube
     /// is not held by then, the grasp missed and the expert plans again from where things are.
     lifted: Option<usize>,
+    then: Then,
 }
 
 /// Index of the waypoint that ends the lift in a picking plan.
 const LIFTED: usize = 4;
-/// How many times a missed grasp is tried again.
+/// How many times a missed grasp, or a push whose finger lost the cube, starts over.
 const MAX_RETRIES: u32 = 2;
 
 /// Scripted expert for one episode; plans from the scene it is created with.
@@ -98,28 +120,33 @@ impl Expert {
         Self { base: scene.base_pose(), plan: plan(scene, &joints), frame: 0, joints, retries: 0 }
     }
 
-    /// Frames the whole demonstration takes (as planned now; a retry adds a new plan).
-    pub fn planned_frames(&self) -> u32 {
+    /// Frames the part of the demonstration planned now takes (a retry or a push's next stroke is
+    /// a new plan).
+    fn planned_frames(&self) -> u32 {
         self.plan.waypoints.iter().map(|w| w.frames).sum()
     }
 
-    /// Whether the plan has been played to its end.
+    /// Whether the demonstration has been played to its end.
     pub fn done(&self) -> bool {
-        self.frame >= self.planned_frames()
+        self.frame >= self.planned_frames() && matches!(self.plan.then, Then::Hold)
     }
 
     /// The next action, in robot units (degrees, gripper 0..100): goal positions for this
-    /// control frame. Watches `scene` for a missed grasp; after the end of the plan it keeps
-    /// holding the final pose.
+    /// control frame. Watches `scene` for a missed grasp and at the end of each part of the plan;
+    /// after the end of the demonstration it keeps holding the final pose.
     pub fn act(&mut self, scene: &Scene) -> [f32; JOINT_COUNT] {
         if let Some(lifted) = self.plan.lifted {
             let lifted_at: u32 = self.plan.waypoints[..=lifted].iter().map(|w| w.frames).sum();
             let holding = scene.held_cube() == Some(scene.arrangement().subject);
             if self.frame == lifted_at && !holding && self.retries < MAX_RETRIES {
                 self.retries += 1;
-                self.plan = plan(scene, &self.joints);
-                self.frame = 0;
+                self.start(plan(scene, &self.joints));
             }
+        }
+        if self.frame >= self.planned_frames()
+            && let Some(next) = self.next_plan(scene)
+        {
+            self.start(next);
         }
         self.frame = (self.frame + 1).min(self.planned_frames());
         let waypoint = self.waypoint_at(self.frame);
@@ -132,6 +159,30 @@ impl Expert {
         let mut action = arm::to_robot_units(&self.joints);
         action[GRIPPER] = waypoint.gripper;
         action
+    }
+
+    fn start(&mut self, plan: Plan) {
+        self.plan = plan;
+        self.frame = 0;
+    }
+
+    /// The plan that follows the one just played to its end, if any.
+    fn next_plan(&mut self, scene: &Scene) -> Option<Plan> {
+        let arm = ArmAtStart::new(scene, &self.joints);
+        match self.plan.then {
+            Then::Hold => None,
+            Then::PushOn { target, side, strokes } => {
+                let finger = scene.link_pose(GRIPPER_LINK).transform_point(side.tool_point());
+                match next_stroke(scene, &arm, target, side, strokes, finger) {
+                    Stroke::Planned(plan) => Some(plan),
+                    Stroke::LostContact if self.retries < MAX_RETRIES => {
+                        self.retries += 1;
+                        Some(push(scene, &arm, target))
+                    }
+                    Stroke::LostContact => Some(back_off(&arm, side, target)),
+                }
+            }
+        }
     }
 
     /// The plan interpolated at `frame`: smooth in position and yaw, linear in gripper.
@@ -254,43 +305,108 @@ fn pick_and_place(scene: &Scene, arm: &ArmAtStart, place: Place) -> Plan {
         // Hold still while the cube settles.
         at(over(retreat, RETREAT_HEIGHT), release_yaw, GRIPPER_OPEN, 6),
     ]);
-    Plan { tool_point: grasp_point, waypoints, lifted: Some(LIFTED) }
+    Plan { tool_point: grasp_point, waypoints, lifted: Some(LIFTED), then: Then::Hold }
 }
 
-/// Pushes the task's cube to `target` with a face of the fixed finger held flat against the
-/// cube's face turned most towards it, the jaw open behind the finger or beyond the cube, and
-/// lifts away. The servos move the finger in a burst each control frame, so each contact kicks
-/// the cube a few millimetres along the contact's normal: the cube goes straight only pushed
-/// face to face, and the arrangement puts the target straight out from a face.
+/// Which face of the fixed finger pushes: the outer one pushes towards where the jaw closes, the
+/// inner one the other way.
+#[derive(Clone, Copy, Debug)]
+enum FingerSide {
+    Outer,
+    Inner,
+}
+
+impl FingerSide {
+    /// The pushing point on this face, gripper frame.
+    fn tool_point(self) -> Vec3 {
+        let face_x = match self {
+            FingerSide::Outer => FIXED_FINGER_FACE_X + FIXED_FINGER_THICKNESS,
+            FingerSide::Inner => FIXED_FINGER_FACE_X,
+        };
+        Vec3::new(face_x, FINGER_TIP_Y + PUSH_ABOVE_TIP, 0.0)
+    }
+
+    /// The jaw's closing yaw that turns this face to push along `push_yaw`.
+    fn closing_yaw(self, push_yaw: f32) -> f32 {
+        match self {
+            FingerSide::Outer => push_yaw,
+            FingerSide::Inner => wrap(push_yaw + PI),
+        }
+    }
+}
+
+/// Goes down behind the task's cube, on the side away from `target`, with a face of the fixed
+/// finger held flat against the cube's face turned most towards the target, the jaw open behind
+/// the finger or beyond the cube; the strokes follow ([`next_stroke`]). The servos move the finger
+/// in a burst each control frame, so each contact kicks the cube a few millimetres along the
+/// contact's normal: the cube goes straight only pushed face to face, and the arrangement puts the
+/// target straight out from a face.
 fn push(scene: &Scene, arm: &ArmAtStart, target: Vec3) -> Plan {
     let cube = scene.cube_pose();
     let heading = (target - cube.translation).truncate().normalize_or_zero().extend(0.0);
     let face_yaw = nearest_face(yaw_of(cube.rotation * Vec3::X), yaw_of(heading));
-    // The finger's outer face pushes towards where the jaw closes, its inner face the other
-    // way: of the two, the one that keeps the jaw's yaw nearer the natural one.
-    let (closing_yaw, face_x) = if angle_between(face_yaw, arm.facing(cube.translation)) <= FRAC_PI_2 {
-        (face_yaw, FIXED_FINGER_FACE_X + FIXED_FINGER_THICKNESS)
+    // Of the finger's two faces, the one that keeps the jaw's yaw nearer the natural one.
+    let side = if angle_between(face_yaw, arm.facing(cube.translation)) <= FRAC_PI_2 {
+        FingerSide::Outer
     } else {
-        (wrap(face_yaw + PI), FIXED_FINGER_FACE_X)
+        FingerSide::Inner
     };
-    let tool_point = Vec3::new(face_x, FINGER_TIP_Y + PUSH_ABOVE_TIP, 0.0);
+    let closing_yaw = side.closing_yaw(face_yaw);
     let behind = over(cube.translation - heading * PUSH_APPROACH, PUSH_HEIGHT);
-    // The finger stops where the cube's centre is on the target.
-    let end = over(target - heading * CUBE_HALF, PUSH_HEIGHT);
-    let back = end - heading * PUSH_BACK_OFF;
-    let stroke_frames = ((end - behind).length() / PUSH_SPEED * FPS as f32).ceil() as u32;
     let at = |position, frames| Waypoint::new(position, closing_yaw, GRIPPER_OPEN, frames);
-    let waypoints = vec![
-        arm.waypoint(tool_point),
-        at(over(behind, HOVER_HEIGHT), 45),
-        at(behind, 30),
-        at(end, stroke_frames),
-        at(back, 10),
-        at(over(back, RETREAT_HEIGHT), 20),
-        // Hold still while the cube settles.
-        at(over(back, RETREAT_HEIGHT), 6),
-    ];
-    Plan { tool_point, waypoints, lifted: None }
+    let waypoints = vec![arm.waypoint(side.tool_point()), at(over(behind, HOVER_HEIGHT), 45), at(behind, 30)];
+    Plan { tool_point: side.tool_point(), waypoints, lifted: None, then: Then::PushOn { target, side, strokes: 0 } }
+}
+
+/// What follows a stroke of a push.
+enum Stroke {
+    /// The next stroke, or the back-off once the cube is on the target.
+    Planned(Plan),
+    /// The finger is no longer behind the cube as seen from the target: the push has to start over.
+    LostContact,
+}
+
+/// The stroke after `strokes` strokes, with the finger's face at `finger`: a push of the cube by
+/// at most [`PUSH_STROKE`] along the line from where it is now to `target`, the finger's face
+/// square to that line (squared to the cube's own face instead, the push lost 5 of 20 seeds
+/// without any perturbation); or, once the cube is there (or after [`MAX_STROKES`]), the back-off.
+fn next_stroke(scene: &Scene, arm: &ArmAtStart, target: Vec3, side: FingerSide, strokes: u32, finger: Vec3) -> Stroke {
+    let cube = scene.cube_pose();
+    let to_target = (target - cube.translation).truncate();
+    let distance = to_target.length();
+    if distance < PUSH_CLOSE_ENOUGH || strokes >= MAX_STROKES {
+        return Stroke::Planned(back_off(arm, side, target));
+    }
+    let heading = to_target / distance;
+    let from_cube = (finger - cube.translation).truncate();
+    if from_cube.dot(heading) > -0.5 * CUBE_HALF || from_cube.perp_dot(heading).abs() > 0.75 * CUBE_HALF {
+        return Stroke::LostContact;
+    }
+    let heading = heading.extend(0.0);
+    let closing_yaw = side.closing_yaw(yaw_of(heading));
+    let start = arm.waypoint(side.tool_point());
+    let end = over(cube.translation + heading * (distance.min(PUSH_STROKE) - CUBE_HALF), PUSH_HEIGHT);
+    let frames = ((end - start.position).length() / PUSH_SPEED * FPS as f32).ceil().max(4.0) as u32;
+    Stroke::Planned(Plan {
+        tool_point: side.tool_point(),
+        waypoints: vec![start, Waypoint::new(end, closing_yaw, GRIPPER_OPEN, frames)],
+        lifted: None,
+        then: Then::PushOn { target, side, strokes: strokes + 1 },
+    })
+}
+
+/// Backs the pushing finger off, away from `target`, and lifts it.
+fn back_off(arm: &ArmAtStart, side: FingerSide, target: Vec3) -> Plan {
+    let start = arm.waypoint(side.tool_point());
+    let away = (start.position - target).truncate().normalize_or_zero().extend(0.0);
+    let back = start.position + away * PUSH_BACK_OFF;
+    let at = |position, frames| Waypoint::new(position, arm.closing_yaw, GRIPPER_OPEN, frames);
+    Plan {
+        tool_point: side.tool_point(),
+        waypoints: vec![start, at(back, 10), at(over(back, RETREAT_HEIGHT), 20), at(over(back, RETREAT_HEIGHT), 6)],
+        lifted: None,
+        then: Then::Hold,
+    }
 }
 
 /// The point at height `z` above or below `p`.

@@ -1,6 +1,6 @@
 //! Every task: the scripted expert solves it on nearly every seed, its success test does not
 //! hold before anything is done, and the pick-colour task counts only the cube its instruction
-//! names.
+//! names. The pushing expert also solves its task on most seeds under recovery noise.
 
 use fedvla_sim::arm::GRIPPER;
 use fedvla_sim::task::{BOWL_FLOOR, CUBE_HALF};
@@ -12,11 +12,20 @@ const MAX_FRAMES: u32 = 400;
 
 /// Runs the expert on seeds 0..SEEDS of `task` and checks it succeeds on at least 90% of them.
 fn expert_solves(task: TaskKind) {
+    expert_solves_under(task, ActionNoise::NONE, 9);
+}
+
+/// Runs the expert on seeds 0..SEEDS of `task`, the arm perturbed by `noise`, and checks it
+/// succeeds on at least `tenths` tenths of them.
+fn expert_solves_under(task: TaskKind, noise: ActionNoise, tenths: usize) {
     let failed: Vec<u64> =
-        (0..SEEDS).filter(|seed| !run_expert_episode_on(task, *seed, MAX_FRAMES, ActionNoise::NONE).success).collect();
+        (0..SEEDS).filter(|seed| !run_expert_episode_on(task, *seed, MAX_FRAMES, noise).success).collect();
     let successes = SEEDS as usize - failed.len();
-    println!("{task}: the expert succeeded on {successes}/{SEEDS} seeds; failed seeds {failed:?}");
-    assert!(successes * 10 >= SEEDS as usize * 9, "{task}: {successes}/{SEEDS} succeeded; failed seeds {failed:?}");
+    println!("{task}: the expert succeeded on {successes}/{SEEDS} seeds under {noise:?}; failed seeds {failed:?}");
+    assert!(
+        successes * 10 >= SEEDS as usize * tenths,
+        "{task} under {noise:?}: {successes}/{SEEDS} succeeded; failed seeds {failed:?}"
+    );
 }
 
 #[test]
@@ -32,6 +41,13 @@ fn expert_stacks_the_cubes() {
 #[test]
 fn expert_pushes_the_cube_onto_the_target() {
     expert_solves(TaskKind::PushToTarget);
+}
+
+/// Pushed in one open-loop stroke, 0.5° of recovery noise left the cube off the target on 36 of
+/// seeds 0-39; aimed again every stroke, on 6.
+#[test]
+fn expert_pushes_the_cube_onto_the_target_under_recovery_noise() {
+    expert_solves_under(TaskKind::PushToTarget, ActionNoise::degrees(0.5), 7);
 }
 
 #[test]

@@ -253,13 +253,14 @@ fn record_episodes(
                         .map(|(task, (tried, succeeded))| format!("{task} {succeeded} of {tried}"))
                         .collect();
                     anyhow::bail!(
-                        "the expert failed on {} seeds ({}..={}) before {} episodes succeeded; giving up. Its \
+                        "the expert failed on {} seeds ({}..={}) before {} episode{} succeeded; giving up. Its \
                          successes under {}° of action noise: {}. A task whose expert rarely succeeds under that \
                          noise needs less (`--action-noise`, `dataset-action-noise`) or no place in the dataset",
                         skipped.len(),
                         skipped[0],
                         seed,
                         opts.episodes,
+                        if opts.episodes == 1 { "" } else { "s" },
                         opts.action_noise_degrees,
                         tally.join(", ")
                     );

@@ -168,12 +168,11 @@ impl Expert {
 
     /// The plan that follows the one just played to its end, if any.
     fn next_plan(&mut self, scene: &Scene) -> Option<Plan> {
-        let arm = ArmAtStart::new(scene, &self.joints);
         match self.plan.then {
             Then::Hold => None,
             Then::PushOn { target, side, strokes } => {
-                let finger = scene.link_pose(GRIPPER_LINK).transform_point(side.tool_point());
-                match next_stroke(scene, &arm, target, side, strokes, finger) {
+                let arm = ArmAtStart::new(scene, &self.joints);
+                match next_stroke(scene, &arm, target, side, strokes) {
                     Stroke::Planned(plan) => Some(plan),
                     Stroke::LostContact if self.retries < MAX_RETRIES => {
                         self.retries += 1;
@@ -366,11 +365,11 @@ enum Stroke {
     LostContact,
 }
 
-/// The stroke after `strokes` strokes, with the finger's face at `finger`: a push of the cube by
+/// The stroke after `strokes` strokes, judged from where the finger's face is: a push of the cube by
 /// at most [`PUSH_STROKE`] along the line from where it is now to `target`, the finger's face
 /// square to that line (squared to the cube's own face instead, the push lost 5 of 20 seeds
 /// without any perturbation); or, once the cube is there (or after [`MAX_STROKES`]), the back-off.
-fn next_stroke(scene: &Scene, arm: &ArmAtStart, target: Vec3, side: FingerSide, strokes: u32, finger: Vec3) -> Stroke {
+fn next_stroke(scene: &Scene, arm: &ArmAtStart, target: Vec3, side: FingerSide, strokes: u32) -> Stroke {
     let cube = scene.cube_pose();
     let to_target = (target - cube.translation).truncate();
     let distance = to_target.length();
@@ -378,6 +377,7 @@ fn next_stroke(scene: &Scene, arm: &ArmAtStart, target: Vec3, side: FingerSide, 
         return Stroke::Planned(back_off(arm, side, target));
     }
     let heading = to_target / distance;
+    let finger = scene.link_pose(GRIPPER_LINK).transform_point(side.tool_point());
     let from_cube = (finger - cube.translation).truncate();
     if from_cube.dot(heading) > -0.5 * CUBE_HALF || from_cube.perp_dot(heading).abs() > 0.75 * CUBE_HALF {
         return Stroke::LostContact;

@@ -8,29 +8,29 @@ use plotters::prelude::*;
 
 use super::stats::Interval;
 
-/// One arm's figure per round, over its seeds.
+/// One arm's figure along an axis of whole numbers (rounds, samples), over its seeds.
 pub struct Curve {
     pub name: String,
-    /// (round, interval over the seeds that evaluated that round).
+    /// (x, interval over the seeds that have a value at that x).
     pub points: Vec<(u64, Interval)>,
 }
 
 impl Curve {
-    /// Per round, the mean and 95% interval over `runs` (each a list of (round, value)).
+    /// At each x, the mean and 95% interval over `runs` (each a list of (x, value)).
     pub fn over_seeds(name: &str, runs: impl Iterator<Item = Vec<(u64, f64)>>) -> Self {
-        let mut by_round: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+        let mut by_x: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
         for run in runs {
-            for (round, value) in run {
-                by_round.entry(round).or_default().push(value);
+            for (x, value) in run {
+                by_x.entry(x).or_default().push(value);
             }
         }
-        let points = by_round.into_iter().filter_map(|(r, v)| Some((r, Interval::t(&v)?))).collect();
+        let points = by_x.into_iter().filter_map(|(r, v)| Some((r, Interval::t(&v)?))).collect();
         Self { name: name.to_owned(), points }
     }
 }
 
 /// Draws `curves` into the PNG at `path` (800 x 480).
-pub fn plot_curves(path: &Path, title: &str, y_label: &str, curves: &[Curve]) -> anyhow::Result<()> {
+pub fn plot_curves(path: &Path, title: &str, x_label: &str, y_label: &str, curves: &[Curve]) -> anyhow::Result<()> {
     let points = || curves.iter().flat_map(|c| c.points.iter());
     let x_max = points().map(|(r, _)| *r).max().unwrap_or(1).max(1) as f64;
     let y_min = points().map(|(_, i)| i.ci95_low).fold(f64::INFINITY, f64::min);
@@ -46,7 +46,7 @@ pub fn plot_curves(path: &Path, title: &str, y_label: &str, curves: &[Curve]) ->
         .y_label_area_size(64)
         .build_cartesian_2d(0f64..x_max, (y_min - pad)..(y_max + pad))
         .map_err(draw_error)?;
-    chart.configure_mesh().x_desc("round").y_desc(y_label).draw().map_err(draw_error)?;
+    chart.configure_mesh().x_desc(x_label).y_desc(y_label).draw().map_err(draw_error)?;
     for (i, curve) in curves.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
         let band: Vec<(f64, f64)> = curve

@@ -1,6 +1,7 @@
 //! An experiment's report from its finished runs: `report.json` ([`Report`]), `report.md` (its tables: the arms,
 //! and for runs of several tasks each task's figures and the language check) and the PNG plots of held-out loss
-//! and sim success per round (mean and 95% band per arm).
+//! and sim success against the training samples consumed (mean and 95% band per arm): arms that spend the same samples
+//! in different rounds (40 of 100 steps, 400 of 10, the centralized baseline's steps) share one axis.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -12,7 +13,9 @@ use serde::{Deserialize, Serialize};
 use super::config::{ExperimentConfig, FINAL_FILE, Mode, last_heldout, read_final};
 use super::plot::{Curve, plot_curves};
 use super::stats::Interval;
-use fedvla_aggregator::records::{RolloutResults, read_metrics};
+use fedvla_aggregator::config::RunConfig;
+use fedvla_aggregator::records::{MetricsLine, RolloutResults, read_metrics};
+use fedvla_aggregator::run_dir::CONFIG_FILE;
 use fedvla_federation::{PrivacyReport, TaskHeldOut};
 
 pub const REPORT_JSON: &str = "report.json";
@@ -39,9 +42,9 @@ pub struct ArmReport {
     pub success_pooled: Interval,
     pub episodes: u64,
     pub successes: u64,
-    /// Rounds until a run's per-round sim success first reached 90% of its final success (runs that never
-    /// succeed have none).
-    pub rounds_to_90pct: Option<Interval>,
+    /// Training samples consumed until a run's per-round sim success first reached 90% of its final success
+    /// (runs that never succeed have none).
+    pub samples_to_90pct: Option<Interval>,
     pub train_seconds: Interval,
     /// Mean length (frames at 30 fps) of the successful final episodes.
     pub mean_success_length: Option<f64>,
@@ -133,16 +136,28 @@ struct RunFigures {
     final_sim: RolloutResults,
 }
 
-/// One evaluated round of a run: (round, held-out loss, the round's sim success rate where it was rolled out).
-type CurvePoint = (u64, f64, Option<f64>);
+/// One evaluated round of a run.
+struct CurvePoint {
+    /// Training samples consumed by the end of the round.
+    samples: u64,
+    heldout_loss: f64,
+    /// The round's sim success rate, where it was rolled out.
+    success_rate: Option<f64>,
+}
 
 fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
     let metrics = read_metrics(run)?;
+    let samples = samples_consumed(run, &metrics)?;
     let curve: Vec<CurvePoint> = metrics
         .iter()
-        .filter_map(|l| {
+        .zip(samples)
+        .filter_map(|(l, samples)| {
             let g = l.global.as_ref()?;
-            Some((l.round, g.eval.as_ref()?.heldout_loss, g.sim.as_ref().map(|s| s.success_rate)))
+            Some(CurvePoint {
+                samples,
+                heldout_loss: g.eval.as_ref()?.heldout_loss,
+                success_rate: g.sim.as_ref().map(|s| s.success_rate),
+            })
         })
         .collect();
     let last = last_heldout(&metrics).with_context(|| format!("{}: no evaluated round", run.display()))?;
@@ -164,6 +179,33 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         heldout_by_task: last.heldout_by_task.clone(),
         final_sim,
     })
+}
+
+/// Training samples consumed by the end of each line's round: the centralized baseline writes them; a federation's
+/// are its accepted clients' local steps x batch size, round by round, under the settings each round used (the
+/// operator may change them mid-run).
+fn samples_consumed(run: &Path, metrics: &[MetricsLine]) -> anyhow::Result<Vec<u64>> {
+    Ok(samples_by_line(&RunConfig::load(&run.join(CONFIG_FILE))?, metrics))
+}
+
+fn samples_by_line(config: &RunConfig, metrics: &[MetricsLine]) -> Vec<u64> {
+    let (mut steps, mut batch) = (u64::from(config.local_steps), u64::from(config.batch_size));
+    let mut total = 0;
+    metrics
+        .iter()
+        .map(|line| {
+            if let Some(settings) = &line.settings {
+                steps = settings.local_steps.map_or(steps, u64::from);
+                batch = settings.batch_size.map_or(batch, u64::from);
+            }
+            total = match line.samples {
+                Some(samples) => samples,
+                None if line.skipped.is_some() => total,
+                None => total + line.clients.iter().filter(|c| c.accepted).count() as u64 * steps * batch,
+            };
+            total
+        })
+        .collect()
 }
 
 /// Builds the report of every finished run of `config` and writes it into the experiment's folder.
@@ -196,7 +238,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         };
         let (successes, episodes) = runs.iter().fold((0, 0), |(s, e), r| (s + r.successes, e + r.episodes));
         let lengths: Vec<f64> = runs.iter().flat_map(|r| r.success_lengths.iter().copied()).collect();
-        let to_90: Vec<f64> = runs.iter().filter_map(rounds_to_90pct).collect();
+        let to_90: Vec<f64> = runs.iter().filter_map(samples_to_90pct).collect();
         arms.push(ArmReport {
             name: arm.name.clone(),
             mode: arm.mode,
@@ -210,7 +252,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
             success_pooled: Interval::wilson(successes, episodes).expect("every run has episodes"),
             episodes,
             successes,
-            rounds_to_90pct: Interval::t(&to_90),
+            samples_to_90pct: Interval::t(&to_90),
             train_seconds: of(|r| r.train_seconds).expect("runs is not empty"),
             mean_success_length: (!lengths.is_empty()).then(|| lengths.iter().sum::<f64>() / lengths.len() as f64),
             ratio_to_centralized: match (arm.mode, centralized) {
@@ -237,22 +279,24 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
                     &a.name,
                     figures[a.name.as_str()]
                         .iter()
-                        .map(|r| r.curve.iter().filter_map(|p| Some((p.0, pick(p)?))).collect()),
+                        .map(|r| r.curve.iter().filter_map(|p| Some((p.samples, pick(p)?))).collect()),
                 )
             })
             .collect()
     };
     plot_curves(
         &dir.join("heldout_loss.png"),
-        "held-out loss per round (mean, 95% band over seeds)",
+        "held-out loss by training samples (mean, 95% band over seeds)",
+        "training samples",
         "held-out loss",
-        &curves(|p| Some(p.1)),
+        &curves(|p| Some(p.heldout_loss)),
     )?;
     plot_curves(
         &dir.join("success_rate.png"),
-        "sim success per round (mean, 95% band over seeds)",
+        "sim success by training samples (mean, 95% band over seeds)",
+        "training samples",
         "success rate",
-        &curves(|p| p.2),
+        &curves(|p| p.success_rate),
     )?;
     Ok(report)
 }
@@ -327,12 +371,12 @@ fn arm_privacy(run: &RunFigures) -> Option<ArmPrivacy> {
     })
 }
 
-/// Rounds until the run's per-round success first reached 90% of its final success.
-fn rounds_to_90pct(run: &RunFigures) -> Option<f64> {
+/// Training samples consumed until the run's per-round success first reached 90% of its final success.
+fn samples_to_90pct(run: &RunFigures) -> Option<f64> {
     if run.success_rate <= 0.0 {
         return None;
     }
-    run.curve.iter().find(|(_, _, s)| s.is_some_and(|s| s >= 0.9 * run.success_rate)).map(|(r, _, _)| *r as f64)
+    run.curve.iter().find(|p| p.success_rate.is_some_and(|s| s >= 0.9 * run.success_rate)).map(|p| p.samples as f64)
 }
 
 fn ratio(runs: &[RunFigures], central: &[RunFigures]) -> Ratio {
@@ -377,7 +421,7 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
         let _ = writeln!(md, "- `{}` ({:?}): {overrides}", arm.name, arm.mode);
     }
     md.push('\n');
-    md.push_str("| arm | held-out loss | action MSE | action L1 | sim success | success, pooled (Wilson) | federated / centralized | rounds to 90% | train time (s) | mean successful length |\n");
+    md.push_str("| arm | held-out loss | action MSE | action L1 | sim success | success, pooled (Wilson) | federated / centralized | samples to 90% (thousands) | train time (s) | mean successful length |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
     for arm in &report.arms {
         let f = &arm.final_;
@@ -403,7 +447,9 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
             arm.successes,
             arm.episodes,
             ratio,
-            opt(&arm.rounds_to_90pct, 1),
+            arm.samples_to_90pct.as_ref().map_or("-".to_owned(), |i| {
+                format!("{:.0} [{:.0}, {:.0}]", i.mean / 1e3, i.ci95_low / 1e3, i.ci95_high / 1e3)
+            }),
             interval(&arm.train_seconds, 0),
             arm.mean_success_length.map_or("-".to_owned(), |l| format!("{l:.0}")),
         );
@@ -494,5 +540,39 @@ fn privacy_markdown(md: &mut String, report: &Report) {
                 .find(|e| e.round == round)
                 .map_or("-".to_owned(), |e| format!("{:.3}", e.epsilon))
         }));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use fedvla_aggregator::control::Settings;
+    use fedvla_aggregator::records::ClientRecord;
+
+    use super::*;
+
+    #[test]
+    fn samples_count_accepted_clients_under_each_rounds_settings() {
+        let config = RunConfig::from_toml("local-steps = 10\nbatch-size = 4\n", "test").unwrap();
+        let client = |accepted| ClientRecord { accepted, ..Default::default() };
+        let lines = [
+            // The initial model's evaluation: nothing trained yet.
+            MetricsLine { round: 0, ..Default::default() },
+            // Three clients of 10 steps x 4 samples.
+            MetricsLine { round: 1, clients: vec![client(true); 3], ..Default::default() },
+            // A skipped round adds nothing to the model.
+            MetricsLine { round: 2, clients: vec![client(true)], skipped: Some("x".into()), ..Default::default() },
+            // From round 3 on, 5 local steps; the refused client's samples never reach the model.
+            MetricsLine {
+                round: 3,
+                clients: vec![client(true), client(true), client(false)],
+                settings: Some(Settings { local_steps: Some(5), ..Default::default() }),
+                ..Default::default()
+            },
+            MetricsLine { round: 4, clients: vec![client(true)], ..Default::default() },
+        ];
+        assert_eq!(samples_by_line(&config, &lines), [0, 120, 120, 160, 180]);
+        // The centralized baseline writes its own count.
+        let centralized = [0, 3000].map(|samples| MetricsLine { samples: Some(samples), ..Default::default() });
+        assert_eq!(samples_by_line(&config, &centralized), [0, 3000]);
     }
 }

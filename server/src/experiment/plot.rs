@@ -2,6 +2,7 @@
 //! one line per run on a log scale (a search's trials over its rungs).
 
 use std::collections::BTreeMap;
+use std::ops::RangeInclusive;
 use std::path::Path;
 
 use plotters::prelude::*;
@@ -29,12 +30,21 @@ impl Curve {
     }
 }
 
-/// Draws `curves` into the PNG at `path` (800 x 480).
-pub fn plot_curves(path: &Path, title: &str, x_label: &str, y_label: &str, curves: &[Curve]) -> anyhow::Result<()> {
+/// Draws `curves` into the PNG at `path` (800 x 480). `range` is what the figure can take (a success rate lies in
+/// [0, 1], a loss at or above 0): a t band over a few seeds reaches beyond it, and is drawn clipped to it.
+pub fn plot_curves(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    range: RangeInclusive<f64>,
+    curves: &[Curve],
+) -> anyhow::Result<()> {
+    let clip = |y: f64| y.clamp(*range.start(), *range.end());
     let points = || curves.iter().flat_map(|c| c.points.iter());
     let x_max = points().map(|(r, _)| *r).max().unwrap_or(1).max(1) as f64;
-    let y_min = points().map(|(_, i)| i.ci95_low).fold(f64::INFINITY, f64::min);
-    let y_max = points().map(|(_, i)| i.ci95_high).fold(f64::NEG_INFINITY, f64::max);
+    let y_min = points().map(|(_, i)| clip(i.ci95_low)).fold(f64::INFINITY, f64::min);
+    let y_max = points().map(|(_, i)| clip(i.ci95_high)).fold(f64::NEG_INFINITY, f64::max);
     let (y_min, y_max) = if y_min.is_finite() && y_max > y_min { (y_min, y_max) } else { (0.0, 1.0) };
     let pad = (y_max - y_min) * 0.05;
     let root = BitMapBackend::new(path, (800, 480)).into_drawing_area();
@@ -46,14 +56,22 @@ pub fn plot_curves(path: &Path, title: &str, x_label: &str, y_label: &str, curve
         .y_label_area_size(64)
         .build_cartesian_2d(0f64..x_max, (y_min - pad)..(y_max + pad))
         .map_err(draw_error)?;
-    chart.configure_mesh().x_desc(x_label).y_desc(y_label).draw().map_err(draw_error)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_label)
+        .y_desc(y_label)
+        // Whole numbers on x; on y, a tick a rounding error below 0 reads 0, not -0.0.
+        .x_label_formatter(&|x| format!("{x:.0}"))
+        .y_label_formatter(&|y| if y.abs() < 5e-5 { "0".to_owned() } else { format!("{}", (y * 1e4).round() / 1e4) })
+        .draw()
+        .map_err(draw_error)?;
     for (i, curve) in curves.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
         let band: Vec<(f64, f64)> = curve
             .points
             .iter()
-            .map(|(r, c)| (*r as f64, c.ci95_high))
-            .chain(curve.points.iter().rev().map(|(r, c)| (*r as f64, c.ci95_low)))
+            .map(|(r, c)| (*r as f64, clip(c.ci95_high)))
+            .chain(curve.points.iter().rev().map(|(r, c)| (*r as f64, clip(c.ci95_low))))
             .collect();
         chart.draw_series(std::iter::once(Polygon::new(band, color.mix(0.2).filled()))).map_err(draw_error)?;
         let line = curve.points.iter().map(|(r, c)| (*r as f64, c.mean));

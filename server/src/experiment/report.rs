@@ -289,6 +289,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         "held-out loss by training samples (mean, 95% band over seeds)",
         "training samples",
         "held-out loss",
+        0.0..=f64::INFINITY,
         &curves(|p| Some(p.heldout_loss)),
     )?;
     plot_curves(
@@ -296,6 +297,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
         "sim success by training samples (mean, 95% band over seeds)",
         "training samples",
         "success rate",
+        0.0..=1.0,
         &curves(|p| p.success_rate),
     )?;
     Ok(report)

@@ -276,6 +276,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
         line.global = (eval.is_some() || sim.is_some()).then_some(GlobalMetrics { eval, sim });
         line.timestamp = timestamp();
         run_dir.append_metrics(&line)?;
+        run_dir.remove_superseded_models(config.keep_models)?;
         if let Some(loss) = loss {
             bars.println(format!("round {}: held-out loss {loss:.4}, sim success {success:?}", line.round));
         }

@@ -3,7 +3,8 @@
 mod common;
 
 use common::*;
-use fedvla_aggregator::run_dir::{RunDir, TRAINABLE_FILE};
+use fedvla_aggregator::records::read_metrics;
+use fedvla_aggregator::run_dir::{MODELS_DIR, RunDir, TRAINABLE_FILE};
 use fedvla_federation::TrainOutput;
 
 #[tokio::test]
@@ -51,6 +52,44 @@ async fn killed_after_round_one_then_resumed() {
     assert_eq!(metrics(&dir)[2]["model_version"].as_u64(), Some(2));
     let loss = |i: usize| metrics(&dir)[i]["global"]["heldout_loss"].as_f64().unwrap();
     assert!(loss(2) < loss(1), "round 2 built on round 1");
+}
+
+/// Under `keep-models=evaluated` the models of rounds that did not evaluate go once the next round completes, but
+/// never the last completed one: a server killed after such a round resumes from it.
+#[tokio::test]
+async fn keeping_only_evaluated_models_resumes_from_the_last_round() {
+    let base = tempfile::tempdir().unwrap();
+    let cfg = config("num-server-rounds=5 eval-every=2 keep-models=evaluated");
+    let run_dir = RunDir::create(base.path(), &cfg).unwrap();
+    let dir = run_dir.path().to_owned();
+    let rounds = || {
+        let mut rounds: Vec<u64> = std::fs::read_dir(dir.join(MODELS_DIR))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().strip_prefix("round_").unwrap().parse().unwrap())
+            .collect();
+        rounds.sort();
+        rounds
+    };
+
+    let handle = start(cfg, run_dir).await;
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, Some(4))).collect();
+    wait_status(&handle, |s| s.completed_rounds == 3).await;
+    handle.kill().await;
+    for (task, _) in &clients {
+        task.abort();
+    }
+    assert_eq!(rounds(), [0, 2, 3], "round 1 went once round 2 completed; round 3, the last, stays");
+
+    let (run_dir, cfg) = RunDir::open(&dir).unwrap();
+    let handle = start(cfg, run_dir.clone()).await;
+    let clients: Vec<_> = (0..3).map(|shard| spawn_client(&handle, shard, None)).collect();
+    assert_eq!(handle.finish().await.unwrap().completed_rounds, 5);
+    for (task, _) in clients {
+        task.await.unwrap().unwrap();
+    }
+    assert_eq!(rounds(), [0, 2, 4, 5], "round 3 went once round 4 completed");
+    let last = read_metrics(&dir).unwrap().pop().unwrap();
+    assert_eq!((last.round, last.model_crc32), (5, run_dir.load_model(5).unwrap().checksum()));
 }
 
 /// A strategy with state (FedAdam's moments, FedAvgM's velocity, SCAFFOLD's control variates, the server's and

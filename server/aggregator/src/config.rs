@@ -167,6 +167,18 @@ pub enum ExportDtype {
     Bf16,
 }
 
+/// Which rounds' global models a run keeps in `global_model/round_N/` once later rounds have completed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KeepModels {
+    /// Every round's.
+    All,
+    /// Round 0's, those of the rounds that evaluated the global model (its held-out figures or rollouts in their
+    /// metrics line), and the last completed round's, which a resumed run starts from: a run of hundreds of short
+    /// rounds keeps a handful of models, not hundreds.
+    Evaluated,
+}
+
 /// Where the training steps of `simulate`'s volunteers and of `train`'s centralized baseline run (a volunteer
 /// that joins chooses its own: `fedvla join --device`). The server's held-out evaluation and rollouts stay on
 /// the CPU either way.
@@ -260,6 +272,7 @@ pub struct RunConfig {
     #[serde(default)]
     pub device: ComputeDevice,
     pub eval_every: u64,
+    pub keep_models: KeepModels,
     pub rollout_episodes: usize,
     pub client_rollout_episodes: u32,
     pub rollout_max_frames: u32,

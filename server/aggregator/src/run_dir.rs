@@ -9,9 +9,9 @@ use std::path::{Path, PathBuf};
 
 use fedvla_federation::{BoxError, NamedTensors, NormalizationStats, TensorError};
 
-use crate::config::{ConfigError, RunConfig};
+use crate::config::{ConfigError, KeepModels, RunConfig};
 pub use crate::records::{METRICS_FILE, RESULTS_FILE};
-use crate::records::{MetricsLine, RolloutResults, SimFigures};
+use crate::records::{MetricsLine, RolloutResults, SimFigures, read_metrics};
 
 pub const CONFIG_FILE: &str = "config.toml";
 pub const MODELS_DIR: &str = "global_model";
@@ -296,6 +296,35 @@ impl RunDir {
         Ok(measured)
     }
 
+    /// Removes the global models `keep` lets go, once a round's metrics line is written: under
+    /// [`KeepModels::Evaluated`], that of every completed round before the last but round 0 and the rounds whose
+    /// metrics line carries the global model's figures. The last completed round's stays: a resumed run starts
+    /// from it. Decided from `metrics.jsonl`, so what a crash between a line and this left goes the next time.
+    /// Returns how many were removed.
+    pub fn remove_superseded_models(&self, keep: KeepModels) -> Result<usize, RunDirError> {
+        if keep == KeepModels::All {
+            return Ok(0);
+        }
+        let lines = read_metrics(&self.path).map_err(io(&self.path.join(METRICS_FILE)))?;
+        let Some(last) = lines.last().map(|l| l.round) else { return Ok(0) };
+        let superseded =
+            |round: u64| round < last && round > 0 && lines.iter().any(|l| l.round == round && l.global.is_none());
+        let models = self.path.join(MODELS_DIR);
+        let mut removed = 0;
+        for entry in fs::read_dir(&models).map_err(io(&models))? {
+            let path = entry.map_err(io(&models))?.path();
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            if round_number(&name).is_some_and(superseded) {
+                fs::remove_dir_all(&path).map_err(io(&path))?;
+                removed += 1;
+            }
+        }
+        if removed > 0 {
+            fedvla_fs::sync_dir(&models).map_err(io(&models))?;
+        }
+        Ok(removed)
+    }
+
     /// The strategy's state after `round`; empty when it carried none.
     pub fn load_strategy_state(&self, round: u64) -> Result<NamedTensors, RunDirError> {
         let path = self.model_dir(round).join(STRATEGY_FILE);
@@ -351,6 +380,7 @@ mod tests {
     use std::io::Write;
 
     use super::*;
+    use crate::records::GlobalMetrics;
 
     #[test]
     fn metrics_resume_point_and_torn_line() {
@@ -399,6 +429,41 @@ mod tests {
         assert_eq!(names(dir.model_dir(1)), [TRAINABLE_FILE]);
         assert_eq!(names(dir.path().to_owned()), [CONFIG_FILE, EVALUATE_DIR, MODELS_DIR, METRICS_FILE]);
         assert_eq!(dir.load_model(1).unwrap(), t);
+    }
+
+    #[test]
+    fn keeping_evaluated_models_removes_the_others_once_superseded() {
+        let base = tempfile::tempdir().unwrap();
+        let dir = RunDir::create(base.path(), &RunConfig::default()).unwrap();
+        let mut t = NamedTensors::new();
+        t.insert("w", vec![1], vec![1.0]).unwrap();
+        let exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
+        let rounds = |dir: &RunDir| {
+            let mut rounds: Vec<u64> = fs::read_dir(dir.path().join(MODELS_DIR))
+                .unwrap()
+                .filter_map(|e| round_number(&e.unwrap().file_name().to_string_lossy()))
+                .collect();
+            rounds.sort();
+            rounds
+        };
+        // Rounds 0 and 3 evaluated; round 1 and 2 did not.
+        let complete = |round: u64, evaluated: bool, keep: KeepModels| {
+            dir.save_model(round, &t, &NamedTensors::new(), &exporters, &RunConfig::default()).unwrap();
+            let global = evaluated.then(GlobalMetrics::default);
+            dir.append_metrics(&MetricsLine { round, global, ..MetricsLine::default() }).unwrap();
+            dir.remove_superseded_models(keep).unwrap()
+        };
+        assert_eq!(complete(0, true, KeepModels::Evaluated), 0);
+        assert_eq!(complete(1, false, KeepModels::All), 0);
+        assert_eq!(complete(2, false, KeepModels::All), 0);
+        assert_eq!(rounds(&dir), [0, 1, 2]);
+        // Switched to keeping the evaluated ones: round 1 goes, round 2 is the last completed and stays.
+        assert_eq!(complete(3, true, KeepModels::Evaluated), 2);
+        assert_eq!(rounds(&dir), [0, 3]);
+        assert_eq!(complete(4, false, KeepModels::Evaluated), 0);
+        assert_eq!(complete(5, false, KeepModels::Evaluated), 1);
+        assert_eq!(rounds(&dir), [0, 3, 5]);
+        assert_eq!(dir.load_model(5).unwrap(), t);
     }
 
     #[test]

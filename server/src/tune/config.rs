@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use fedvla_aggregator::config::{RunConfig, WorkloadKind};
+use fedvla_aggregator::config::{KeepModels, RunConfig, WorkloadKind};
 use fedvla_workloads::smolvla::dataset_root;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -218,6 +218,7 @@ impl TuneConfig {
         Ok(RunConfig {
             num_server_rounds: rounds,
             eval_every: rounds,
+            keep_models: KeepModels::Evaluated,
             rollout_episodes: 0,
             client_rollout_episodes: 0,
             ..config

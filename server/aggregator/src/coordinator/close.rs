@@ -144,6 +144,10 @@ impl Running {
             let sim = run_dir.save_model(round, &global, &state, &exporters, &config)?;
             line.global = (eval.is_some() || sim.is_some()).then_some(GlobalMetrics { eval, sim });
             run_dir.append_metrics(&line)?;
+            // Disk, not data: a model that could not be removed stays, and the run goes on.
+            if let Err(error) = run_dir.remove_superseded_models(config.keep_models) {
+                tracing::warn!(round, %error, "could not remove the global models keep-models lets go");
+            }
             let bytes = global.to_safetensors().map_err(|source| RunDirError::Model { round, source })?;
             Ok((line, bytes))
         })

@@ -407,6 +407,11 @@ pub(crate) fn interval(i: &Interval, digits: usize) -> String {
     format!("{:.d$} [{:.d$}, {:.d$}]", i.mean, i.ci95_low, i.ci95_high, d = digits)
 }
 
+/// [`interval`], or `-` where there is no figure.
+pub(crate) fn optional_interval(i: Option<&Interval>, digits: usize) -> String {
+    i.map_or("-".to_owned(), |i| interval(i, digits))
+}
+
 fn markdown(report: &Report, config: &ExperimentConfig) -> String {
     let mut md = String::new();
     let _ = writeln!(md, "# Experiment `{}`\n", report.name);
@@ -427,9 +432,13 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
     md.push_str("|---|---|---|---|---|---|---|---|---|---|\n");
     for arm in &report.arms {
         let f = &arm.final_;
-        let opt = |i: &Option<Interval>, d| i.as_ref().map_or("-".to_owned(), |i| interval(i, d));
+        let thousands = arm.samples_to_90pct.map(|i| Interval {
+            mean: i.mean / 1e3,
+            ci95_low: i.ci95_low / 1e3,
+            ci95_high: i.ci95_high / 1e3,
+        });
         let ratio = arm.ratio_to_centralized.as_ref().map_or("-".to_owned(), |r| {
-            let mut s = opt(&r.ratio, 2);
+            let mut s = optional_interval(r.ratio.as_ref(), 2);
             if !r.seeds_without_centralized_success.is_empty() {
                 let _ = write!(s, " (seeds {:?}: centralized succeeded nowhere)", r.seeds_without_centralized_success);
             }
@@ -440,8 +449,8 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
             "| {} | {} | {} | {} | {} | {:.2} [{:.2}, {:.2}] ({}/{}) | {} | {} | {} | {} |",
             arm.name,
             interval(&f.heldout_loss, 4),
-            opt(&f.action_mse, 2),
-            opt(&f.action_l1, 2),
+            optional_interval(f.action_mse.as_ref(), 2),
+            optional_interval(f.action_l1.as_ref(), 2),
             interval(&f.success_rate, 2),
             arm.success_pooled.mean,
             arm.success_pooled.ci95_low,
@@ -449,14 +458,12 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
             arm.successes,
             arm.episodes,
             ratio,
-            arm.samples_to_90pct.as_ref().map_or("-".to_owned(), |i| {
-                format!("{:.0} [{:.0}, {:.0}]", i.mean / 1e3, i.ci95_low / 1e3, i.ci95_high / 1e3)
-            }),
+            optional_interval(thousands.as_ref(), 0),
             interval(&arm.train_seconds, 0),
             arm.mean_success_length.map_or("-".to_owned(), |l| format!("{l:.0}")),
         );
     }
-    md.push_str("\nPlots: `heldout_loss.png`, `success_rate.png` (per round, the runs' own rollouts).\n");
+    md.push_str("\nPlots: `heldout_loss.png`, `success_rate.png` (against the training samples consumed; success from the runs' own rollouts).\n");
     tasks_markdown(&mut md, report);
     privacy_markdown(&mut md, report);
     md
@@ -464,7 +471,6 @@ fn markdown(report: &Report, config: &ExperimentConfig) -> String {
 
 /// Each task's figures per arm, and the language check of the task whose instruction decides the goal.
 fn tasks_markdown(md: &mut String, report: &Report) {
-    let opt = |i: &Option<Interval>, d| i.as_ref().map_or("-".to_owned(), |i| interval(i, d));
     if report.arms.iter().any(|a| !a.tasks.is_empty()) {
         md.push_str(
             "\n## Per task\n\nThe last round's held-out figures on each task's rows (mean and Student-t 95% interval \
@@ -480,9 +486,9 @@ fn tasks_markdown(md: &mut String, report: &Report) {
                     "| {} | {} | {} | {} | {} ({}/{}) |",
                     arm.name,
                     t.task,
-                    opt(&t.heldout_loss, 4),
-                    opt(&t.action_mse, 2),
-                    opt(&t.success_pooled, 2),
+                    optional_interval(t.heldout_loss.as_ref(), 4),
+                    optional_interval(t.action_mse.as_ref(), 2),
+                    optional_interval(t.success_pooled.as_ref(), 2),
                     t.successes,
                     t.episodes
                 );

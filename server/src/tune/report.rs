@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use super::config::{TuneConfig, value_text};
 use crate::experiment::plot::{Line, plot_log_lines};
-use crate::experiment::report::{Report, interval};
+use crate::experiment::report::{Report, interval, optional_interval};
 use crate::experiment::stats::Interval;
 use crate::experiment::{ExperimentConfig, last_heldout, read_final};
 
@@ -225,7 +225,7 @@ fn judged_markdown(md: &mut String, judged: &Judged, config: &TuneConfig) {
             "| {} | {} | {} | {} | {} ({}/{}) |",
             arm.name,
             interval(&f.heldout_loss, 4),
-            f.action_l1.as_ref().map_or("-".to_owned(), |i| interval(i, 2)),
+            optional_interval(f.action_l1.as_ref(), 2),
             interval(&f.success_rate, 2),
             interval(&arm.success_pooled, 2),
             arm.successes,

@@ -4,7 +4,7 @@ mod common;
 
 use common::*;
 use fedvla_aggregator::records::read_metrics;
-use fedvla_aggregator::run_dir::{MODELS_DIR, RunDir, TRAINABLE_FILE};
+use fedvla_aggregator::run_dir::{MODELS_DIR, RunDir, TRAINABLE_FILE, numbered_dirs};
 use fedvla_federation::TrainOutput;
 
 #[tokio::test]
@@ -62,13 +62,8 @@ async fn keeping_only_evaluated_models_resumes_from_the_last_round() {
     let cfg = config("num-server-rounds=5 eval-every=2 keep-models=evaluated");
     let run_dir = RunDir::create(base.path(), &cfg).unwrap();
     let dir = run_dir.path().to_owned();
-    let rounds = || {
-        let mut rounds: Vec<u64> = std::fs::read_dir(dir.join(MODELS_DIR))
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().strip_prefix("round_").unwrap().parse().unwrap())
-            .collect();
-        rounds.sort();
-        rounds
+    let rounds = || -> Vec<u64> {
+        numbered_dirs(&dir.join(MODELS_DIR), "round_").unwrap().into_iter().map(|(round, _)| round).collect()
     };
 
     let handle = start(cfg, run_dir).await;

@@ -310,19 +310,18 @@ impl RunDir {
         let superseded =
             |round: u64| round < last && round > 0 && lines.iter().any(|l| l.round == round && l.global.is_none());
         let models = self.path.join(MODELS_DIR);
-        let mut removed = 0;
-        for entry in fs::read_dir(&models).map_err(io(&models))? {
-            let path = entry.map_err(io(&models))?.path();
-            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            if round_number(&name).is_some_and(superseded) {
-                fs::remove_dir_all(&path).map_err(io(&path))?;
-                removed += 1;
-            }
+        let removable: Vec<PathBuf> = numbered_dirs(&models, "round_")
+            .map_err(io(&models))?
+            .into_iter()
+            .filter_map(|(round, path)| superseded(round).then_some(path))
+            .collect();
+        for path in &removable {
+            fs::remove_dir_all(path).map_err(io(path))?;
         }
-        if removed > 0 {
+        if !removable.is_empty() {
             fedvla_fs::sync_dir(&models).map_err(io(&models))?;
         }
-        Ok(removed)
+        Ok(removable.len())
     }
 
     /// The strategy's state after `round`; empty when it carried none.
@@ -363,6 +362,26 @@ fn remove_dirs(parent: &Path, unfinished: impl Fn(&str) -> bool) -> Result<(), R
         }
     }
     fedvla_fs::sync_dir(parent).map_err(io(parent))
+}
+
+/// Subdirectories of `dir` named `<prefix><number>`, by number (none when `dir` does not exist; `round_3.tmp`, a
+/// round being written, is not one): `global_model/round_N/`, `evaluate/round_N/client_K/`.
+pub fn numbered_dirs(dir: &Path, prefix: &str) -> std::io::Result<Vec<(u64, PathBuf)>> {
+    let entries = match fs::read_dir(dir) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(e),
+    };
+    let mut out = Vec::new();
+    for entry in entries {
+        let entry = entry?;
+        let number = entry.file_name().to_str().and_then(|n| n.strip_prefix(prefix)?.parse::<u64>().ok());
+        if let Some(number) = number.filter(|_| entry.path().is_dir()) {
+            out.push((number, entry.path()));
+        }
+    }
+    out.sort();
+    Ok(out)
 }
 
 /// `N` of a `round_N` directory.
@@ -438,13 +457,8 @@ mod tests {
         let mut t = NamedTensors::new();
         t.insert("w", vec![1], vec![1.0]).unwrap();
         let exporters: Vec<Box<dyn ModelExporter>> = vec![Box::new(TrainableSafetensors)];
-        let rounds = |dir: &RunDir| {
-            let mut rounds: Vec<u64> = fs::read_dir(dir.path().join(MODELS_DIR))
-                .unwrap()
-                .filter_map(|e| round_number(&e.unwrap().file_name().to_string_lossy()))
-                .collect();
-            rounds.sort();
-            rounds
+        let rounds = |dir: &RunDir| -> Vec<u64> {
+            numbered_dirs(&dir.path().join(MODELS_DIR), "round_").unwrap().into_iter().map(|(round, _)| round).collect()
         };
         // Rounds 0 and 3 evaluated; round 1 and 2 did not.
         let complete = |round: u64, evaluated: bool, keep: KeepModels| {

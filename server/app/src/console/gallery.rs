@@ -3,10 +3,10 @@
 //! whose LeRobot policy can be downloaded.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use fedvla_aggregator::records::RolloutResults;
-use fedvla_aggregator::run_dir::{EVALUATE_DIR, MODELS_DIR, POLICY_DIR, RESULTS_FILE, ROLLOUTS_DIR};
+use fedvla_aggregator::run_dir::{EVALUATE_DIR, MODELS_DIR, POLICY_DIR, RESULTS_FILE, ROLLOUTS_DIR, numbered_dirs};
 use percent_encoding::{AsciiSet, NON_ALPHANUMERIC, utf8_percent_encode};
 use serde::Serialize;
 
@@ -59,26 +59,6 @@ pub fn checkpoint_rounds(run_dir: &Path) -> std::io::Result<Vec<u64>> {
         .filter(|(_, dir)| dir.join(POLICY_DIR).is_dir())
         .map(|(round, _)| round)
         .collect())
-}
-
-/// Subdirectories named `<prefix><number>`, by number (none when `dir` does not exist; `round_3.tmp`, a round
-/// being written, is not one).
-fn numbered_dirs(dir: &Path, prefix: &str) -> std::io::Result<Vec<(u64, PathBuf)>> {
-    let entries = match std::fs::read_dir(dir) {
-        Ok(entries) => entries,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
-        Err(e) => return Err(e),
-    };
-    let mut out = Vec::new();
-    for entry in entries {
-        let entry = entry?;
-        let number = entry.file_name().to_str().and_then(|n| n.strip_prefix(prefix)?.parse::<u64>().ok());
-        if let Some(number) = number.filter(|_| entry.path().is_dir()) {
-            out.push((number, entry.path()));
-        }
-    }
-    out.sort();
-    Ok(out)
 }
 
 /// The videos (`.mp4`, `.webm`) and results.json in `dir`, if it holds either.

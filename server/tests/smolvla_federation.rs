@@ -473,6 +473,36 @@ fn shuffled_labels_permute_the_training_actions_and_spare_the_held_out_rows() {
     assert_eq!(chunks(&honest, held_out), chunks(&poisoned, held_out));
 }
 
+/// The held-out language check: on pick-colour data every held-out row is evaluated again told another cube's
+/// colour, from the same frames, noise and times; told its own, the loss is about the evaluation's, and told
+/// another it differs (the instruction's tokens reach the action expert). Data of a task the instruction does not decide
+/// has no such check.
+#[test]
+fn the_held_out_evaluation_tells_pick_colour_rows_another_colour() {
+    use fedvla_sim::TaskKind;
+    let evaluate = |task: TaskKind| {
+        let tmp = tempfile::tempdir().unwrap();
+        let data = tmp.path().join("so100");
+        let options = GenDataOptions { episodes: 12, seed: 0, image_size: 32, tasks: vec![task], ..Default::default() };
+        generate_dataset(&data, &options, |_| {}).unwrap();
+        let workload =
+            SmolVlaWorkload::prepare(&config(&data, &tmp.path().join("out"), 0), &tmp.path().join("shards")).unwrap();
+        // Every colour is asked for somewhere, so that every held-out row's other colour has its token ids.
+        let recorded = LeRobotDataset::open(&data).unwrap().tasks().to_vec();
+        assert!(task.instructions().iter().all(|i| recorded.contains(i)), "{recorded:?}");
+        workload.evaluator().unwrap().evaluate(&workload.initial_model().unwrap()).unwrap()
+    };
+    let metrics = evaluate(TaskKind::PickColour);
+    let language = metrics.heldout_language.as_ref().unwrap_or_else(|| panic!("{metrics:?}"));
+    assert_eq!(language.task, "pick-colour");
+    assert_eq!(language.heldout_examples, metrics.heldout_examples, "{metrics:?}");
+    // Told its own instruction, each row's loss is its share of the evaluation's (which LeRobot's loss also takes
+    // over padded steps past an episode's end, where a row's own figure does not).
+    assert!((language.loss_told_right - metrics.heldout_loss).abs() < 0.01 * metrics.heldout_loss, "{metrics:?}");
+    assert!(language.loss_told_another.is_finite() && language.loss_told_another != language.loss_told_right);
+    assert_eq!(evaluate(TaskKind::CubeInBowl).heldout_language, None);
+}
+
 /// `keep-optimizer-state`: a client that keeps its AdamW moments trains a round differently from one whose task
 /// asks for a fresh optimizer, from the same global model after the same first round (one that kept them: a task
 /// that does not keep its moments drops them as it ends); each is reproducible.

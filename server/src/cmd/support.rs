@@ -130,6 +130,12 @@ pub fn print_headline(run: &Path) -> anyhow::Result<()> {
             let mse = task.action_mse.map_or(String::new(), |mse| format!(", action MSE {mse:.3}"));
             println!("  {}: held-out loss {:.4}{mse} ({} rows)", task.task, task.heldout_loss, task.heldout_examples);
         }
+        if let Some(l) = &last.heldout_language {
+            println!(
+                "  {}: held-out loss told the right goal {:.4}, told another {:.4} ({} rows)",
+                l.task, l.loss_told_right, l.loss_told_another, l.heldout_examples
+            );
+        }
     }
     if let Some(last) = lines.iter().rfind(|m| !m.clients.is_empty()) {
         let took: Vec<String> =

@@ -16,7 +16,7 @@ use super::stats::Interval;
 use fedvla_aggregator::config::RunConfig;
 use fedvla_aggregator::records::{MetricsLine, RolloutResults, read_metrics};
 use fedvla_aggregator::run_dir::CONFIG_FILE;
-use fedvla_federation::{PrivacyReport, TaskHeldOut};
+use fedvla_federation::{LanguageHeldOut, PrivacyReport, TaskHeldOut};
 
 pub const REPORT_JSON: &str = "report.json";
 pub const REPORT_MD: &str = "report.md";
@@ -58,6 +58,9 @@ pub struct ArmReport {
     /// The language check of every run's final evaluation, pooled.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub language_check: Option<PooledLanguageCheck>,
+    /// The language check on the held-out rows at every run's last evaluated round.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heldout_language: Option<LanguageLossReport>,
 }
 
 /// One task's figures in an arm: the last round's held-out loss and action MSE (mean and Student-t interval over
@@ -81,6 +84,16 @@ pub struct PooledLanguageCheck {
     pub wrong_successes: u64,
     pub right: Interval,
     pub wrong: Interval,
+}
+
+/// The held-out language checks of an arm's runs ([`LanguageHeldOut`]): the loss told the right goal, told another,
+/// and how much higher told another, paired by seed; each mean and Student-t 95% interval over seeds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LanguageLossReport {
+    pub task: String,
+    pub loss_told_right: Interval,
+    pub loss_told_another: Interval,
+    pub increase_told_another: Interval,
 }
 
 /// The privacy a DP arm's rounds spent. The accountant's epsilon depends only on the sampling rate, the noise
@@ -133,6 +146,7 @@ struct RunFigures {
     privacy: Vec<(u64, PrivacyReport)>,
     /// The last evaluated round's held-out figures per task, and the final evaluation.
     heldout_by_task: Vec<TaskHeldOut>,
+    heldout_language: Option<LanguageHeldOut>,
     final_sim: RolloutResults,
 }
 
@@ -177,6 +191,7 @@ fn run_figures(run: &Path, seed: u64) -> anyhow::Result<RunFigures> {
         curve,
         privacy: metrics.iter().filter_map(|l| Some((l.round, l.privacy?))).filter(|(round, _)| *round > 0).collect(),
         heldout_by_task: last.heldout_by_task.clone(),
+        heldout_language: last.heldout_language.clone(),
         final_sim,
     })
 }
@@ -262,6 +277,7 @@ pub fn write(config: &ExperimentConfig) -> anyhow::Result<Report> {
             privacy: arm_privacy(&runs[0]),
             tasks: task_reports(runs),
             language_check: pooled_language_check(runs),
+            heldout_language: language_loss(runs),
         });
     }
     let report =
@@ -356,6 +372,18 @@ fn pooled_language_check(runs: &[RunFigures]) -> Option<PooledLanguageCheck> {
         wrong_successes,
         right: Interval::wilson(right_successes, episodes)?,
         wrong: Interval::wilson(wrong_successes, episodes)?,
+    })
+}
+
+/// The held-out language checks of an arm's runs, where every run has one.
+fn language_loss(runs: &[RunFigures]) -> Option<LanguageLossReport> {
+    let checks: Vec<&LanguageHeldOut> = runs.iter().map(|r| r.heldout_language.as_ref()).collect::<Option<_>>()?;
+    let of = |f: fn(&LanguageHeldOut) -> f64| Interval::t(&checks.iter().map(|c| f(c)).collect::<Vec<_>>());
+    Some(LanguageLossReport {
+        task: checks.first()?.task.clone(),
+        loss_told_right: of(|c| c.loss_told_right)?,
+        loss_told_another: of(|c| c.loss_told_another)?,
+        increase_told_another: of(|c| c.loss_told_another - c.loss_told_right)?,
     })
 }
 
@@ -497,14 +525,39 @@ fn tasks_markdown(md: &mut String, report: &Report) {
     }
     let checks: Vec<(&str, &PooledLanguageCheck)> =
         report.arms.iter().filter_map(|a| Some((a.name.as_str(), a.language_check.as_ref()?))).collect();
-    if checks.is_empty() {
+    let losses: Vec<(&str, &LanguageLossReport)> =
+        report.arms.iter().filter_map(|a| Some((a.name.as_str(), a.heldout_language.as_ref()?))).collect();
+    if checks.is_empty() && losses.is_empty() {
         return;
     }
     md.push_str(
-        "\n## Language check\n\nEvery final episode of the task whose instruction decides the goal, rolled out told its \
-         own instruction and again on the same layout and noise told another goal's; success is judged by the \
-         episode's own goal both times. A policy that ignores the instruction scores the same on both.\n\n",
+        "\n## Language check\n\nA policy that ignores the instruction does the same told the right goal and told \
+         another. In the sim: every final episode of the task whose instruction decides the goal, rolled out told \
+         its own instruction and again on the same layout and noise told another goal's, success judged by the \
+         episode's own goal both times. On the held-out rows of that task at the last evaluated round: the loss \
+         told each row's own instruction and told another goal's, from the same frames, noise and times (mean and \
+         Student-t 95% interval over seeds; the increase paired by seed).\n\n",
     );
+    if !losses.is_empty() {
+        md.push_str(
+            "| arm | task | held-out loss told the right goal | told another goal | increase told another |\n\
+             |---|---|---|---|---|\n",
+        );
+        for (name, l) in &losses {
+            let _ = writeln!(
+                md,
+                "| {name} | {} | {} | {} | {} |",
+                l.task,
+                interval(&l.loss_told_right, 4),
+                interval(&l.loss_told_another, 4),
+                interval(&l.increase_told_another, 4)
+            );
+        }
+        md.push('\n');
+    }
+    if checks.is_empty() {
+        return;
+    }
     md.push_str("| arm | task | told the right goal (Wilson) | told another goal (Wilson) |\n|---|---|---|---|\n");
     for (name, c) in checks {
         let _ = writeln!(

@@ -19,6 +19,9 @@ pub struct EvalMetrics {
     /// Each task's share of the held-out rows, in the order the tasks first appear (data of more than one task).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub heldout_by_task: Vec<TaskHeldOut>,
+    /// The language check on held-out rows, where a task's instruction decides the goal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heldout_language: Option<LanguageHeldOut>,
 }
 
 /// The held-out figures of one task's rows: their mean loss, and the MSE of their sampled action values.
@@ -30,6 +33,19 @@ pub struct TaskHeldOut {
     pub heldout_loss: f64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub action_mse: Option<f64>,
+}
+
+/// The held-out rows of the task whose instruction decides the goal (pick-colour), their mean loss told their own
+/// instruction and told another goal's, from the same frames, noise and times: a policy that ignores the
+/// instruction has the same loss on both, one that reads it a higher loss told another goal. It shows whether
+/// the instruction is read long before rollouts succeed often enough to tell (the sim's language check).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LanguageHeldOut {
+    /// The task's name (`fedvla tasks`).
+    pub task: String,
+    pub heldout_examples: u64,
+    pub loss_told_right: f64,
+    pub loss_told_another: f64,
 }
 
 impl EvalMetrics {

@@ -26,7 +26,7 @@ pub use data_report::{
     DataReport, DatasetSignature, FeatureMoments, FeatureSummary, NormalizationStats, OwnDataset, StatsSource,
 };
 pub use error::{AggregateError, BoxError, CodecError, TensorError};
-pub use evaluate::{EvalMetrics, Evaluator, TaskHeldOut};
+pub use evaluate::{EvalMetrics, Evaluator, LanguageHeldOut, TaskHeldOut};
 pub use identity::Identity;
 pub use protocol::{
     Capabilities, ClientMessage, ErrorCode, InstructionTokens, LrSchedule, ModelDeltas, PROTOCOL_VERSION,

@@ -2,7 +2,9 @@
 //! of several tasks, per task.
 
 use burn::tensor::Device;
-use fedvla_federation::{BoxError, EvalMetrics, Evaluator, NamedTensors, NormalizationStats, TaskHeldOut};
+use fedvla_federation::{
+    BoxError, EvalMetrics, Evaluator, LanguageHeldOut, NamedTensors, NormalizationStats, TaskHeldOut,
+};
 use fedvla_policy::weights::ParamStore;
 use fedvla_policy::{SmolVla, SmolVlaConfig};
 
@@ -58,6 +60,20 @@ fn by_task(examples: &ShardExamples, rows: &[RowFigures]) -> Vec<TaskHeldOut> {
         .collect()
 }
 
+/// The language check of the rows told another goal: their mean loss told their own instruction and told the other.
+fn language(examples: &ShardExamples, rows: &[RowFigures]) -> Option<LanguageHeldOut> {
+    let told: Vec<(f64, f64)> = rows.iter().filter_map(|r| Some((r.loss, r.loss_told_another_goal?))).collect();
+    let first = rows.iter().find(|r| r.loss_told_another_goal.is_some())?;
+    let task = TaskKind::of_instruction(examples.task_of(first.row))?;
+    let n = told.len() as f64;
+    Some(LanguageHeldOut {
+        task: task.name().to_owned(),
+        heldout_examples: told.len() as u64,
+        loss_told_right: told.iter().map(|(right, _)| right).sum::<f64>() / n,
+        loss_told_another: told.iter().map(|(_, another)| another).sum::<f64>() / n,
+    })
+}
+
 impl Evaluator for HeldOutEvaluator {
     fn evaluate(&mut self, global: &NamedTensors) -> Result<EvalMetrics, BoxError> {
         let weights = to_weights(global);
@@ -74,6 +90,7 @@ impl Evaluator for HeldOutEvaluator {
             action_mse: Some(m.action_mse),
             action_l1: Some(m.action_l1),
             heldout_by_task: by_task(&self.examples, &m.rows),
+            heldout_language: language(&self.examples, &m.rows),
         })
     }
 

@@ -12,6 +12,7 @@ use fedvla_policy::batch::rgb_hwc_to_chw;
 use fedvla_policy::tokenizer::PAD_ID;
 use fedvla_policy::weights::HostTensor;
 use fedvla_policy::{Batch, FeatureStats, NormStats, PolicyError, SmolVlaConfig, Tokenizer};
+use fedvla_sim::TaskKind;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -172,8 +173,42 @@ impl ShardExamples {
 
     /// The task (instruction) row `row` records.
     pub fn task_of(&self, row: usize) -> &str {
-        let index = self.shard.task_index.get(row).map_or(0, |&t| t as usize);
-        self.shard.manifest.tasks.get(index).map_or("", String::as_str)
+        self.shard.manifest.tasks.get(self.task_index(row)).map_or("", String::as_str)
+    }
+
+    /// The index of row `row`'s task among the shard's tasks.
+    pub(crate) fn task_index(&self, row: usize) -> usize {
+        self.shard.task_index.get(row).map_or(0, |&t| t as usize)
+    }
+
+    /// The index among the shard's tasks of the instruction told in place of row `row`'s to check that a policy
+    /// reads it ([`TaskKind::another_goal`]); `None` where its task's instruction does not decide the goal, or the
+    /// shard has no token ids for that other instruction ([`ShardExamples::add_other_goals`] adds them).
+    pub fn another_goal_task(&self, row: usize) -> Option<usize> {
+        let another = TaskKind::another_goal(self.task_of(row))?;
+        self.shard.manifest.tasks.iter().position(|task| *task == another)
+    }
+
+    /// Adds to the shard's instructions every other goal's ([`TaskKind::another_goal`]) that none of its rows
+    /// records, tokenized by `tokenizer` and padded as the shard's own were packed, so that every row of a task
+    /// whose instruction decides the goal can be told another (the held-out language check); a shard holds the
+    /// instructions of its own rows only.
+    pub fn add_other_goals(&mut self, tokenizer: &Tokenizer, cfg: &SmolVlaConfig) -> Result<(), PolicyError> {
+        let tasks = &self.shard.manifest.tasks;
+        let mut missing: Vec<String> =
+            tasks.iter().filter_map(|task| TaskKind::another_goal(task)).filter(|o| !tasks.contains(o)).collect();
+        missing.sort();
+        missing.dedup();
+        let ids = task_token_ids(tokenizer, &missing, cfg)?;
+        let len = self.shard.manifest.tokenizer_max_length;
+        let (all_ids, all_mask) = self.shard.task_tokens.as_mut().expect("checked in new");
+        for task in missing {
+            let tokens = &ids[&task];
+            all_ids.extend((0..len).map(|p| tokens.get(p).map_or(PAD_ID, |&t| i64::from(t))));
+            all_mask.extend((0..len).map(|p| u8::from(p < tokens.len())));
+            self.shard.manifest.tasks.push(task);
+        }
+        Ok(())
     }
 
     /// The frames of its training episodes.
@@ -193,6 +228,14 @@ impl ShardExamples {
 
     /// The batch of `rows` for a policy with chunk size `chunk`.
     pub fn batch(&self, rows: &[usize], chunk: usize) -> Result<Batch, PolicyError> {
+        let tasks: Vec<usize> = rows.iter().map(|&row| self.task_index(row)).collect();
+        self.batch_told(rows, &tasks, chunk)
+    }
+
+    /// The batch of `rows` each told the instruction of the shard's task of the same place in `tasks` (an index
+    /// among the shard's tasks) instead of its own.
+    pub fn batch_told(&self, rows: &[usize], tasks: &[usize], chunk: usize) -> Result<Batch, PolicyError> {
+        assert_eq!(rows.len(), tasks.len(), "one task a row");
         let m = &self.shard.manifest;
         let (w, h) = (m.image_width as usize, m.image_height as usize);
         let b = rows.len();
@@ -221,7 +264,7 @@ impl ShardExamples {
         let len = m.tokenizer_max_length;
         let mut lang_tokens = Vec::with_capacity(b * len);
         let mut lang_mask = Vec::with_capacity(b * len);
-        for &row in rows {
+        for (&row, &task) in rows.iter().zip(tasks) {
             state.extend(state_stats.normalize(&self.shard.state[row * sd..(row + 1) * sd]));
             let (chunk_values, pad) = self
                 .shard
@@ -229,7 +272,6 @@ impl ShardExamples {
                 .ok_or_else(|| PolicyError::Input(format!("shard row {row} is in no episode")))?;
             actions.extend(action_stats.normalize(&chunk_values));
             is_pad.extend(pad);
-            let task = self.shard.task_index[row] as usize;
             lang_tokens.extend_from_slice(&all_ids[task * len..(task + 1) * len]);
             lang_mask.extend(all_mask[task * len..(task + 1) * len].iter().map(|&m| m != 0));
         }

@@ -3,10 +3,11 @@
 //! MSE/L1 of sampled action chunks against the recorded ones, in robot units; and each row's share
 //! of both, for figures per task.
 
+use burn::tensor::Tensor;
 use fedvla_policy::batch::{Prepared, prepare_actions};
 use fedvla_policy::smolvla::{gaussian_noise, sample_times};
 use fedvla_policy::weights::HostTensor;
-use fedvla_policy::{PolicyError, SmolVla};
+use fedvla_policy::{PolicyError, SmolVla, SmolVlaConfig};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -46,6 +47,9 @@ pub struct RowFigures {
     pub row: usize,
     /// The flow-matching loss over the row's unpadded action steps.
     pub loss: f64,
+    /// The same loss, from the same noise and times, told another goal's instruction in place of its own, for a
+    /// row of a task whose instruction decides the goal ([`ShardExamples::another_goal_task`]).
+    pub loss_told_another_goal: Option<f64>,
     /// Sum of the squared errors of its unpadded sampled action values, and their count.
     pub squared_error: f64,
     pub action_values: usize,
@@ -72,30 +76,34 @@ pub fn heldout_metrics(
         let noise = gaussian_noise(&mut rng, [b, cfg.chunk_size, cfg.max_action_dim], &device);
         let time = sample_times(&mut rng, b);
         let actions = batch.actions.as_ref().expect("shard batches carry actions");
-        let out = model.forward_loss(
-            &obs,
-            prepare_actions(cfg, actions, &device),
-            noise,
-            &time,
-            batch.action_is_pad.as_deref(),
-            None,
-        );
+        let pad = batch.action_is_pad.as_deref().expect("shard batches carry pad flags");
+        let out =
+            model.forward_loss(&obs, prepare_actions(cfg, actions, &device), noise.clone(), &time, Some(pad), None);
         loss_sum += out.loss.into_scalar::<f64>() * b as f64;
         n_loss += b;
         let a = cfg.action_dim();
-        let pad = batch.action_is_pad.as_deref().expect("shard batches carry pad flags");
-        // Each row's loss as the batch's is taken: squared errors of its unpadded steps' action values, averaged.
-        let losses = HostTensor::from_tensor(out.losses.narrow(2, 0, a));
-        for (n, &row) in rows.iter().enumerate() {
-            let (mut sum, mut count) = (0.0, 0usize);
-            for step in 0..cfg.chunk_size {
-                if !pad[n * cfg.chunk_size + step] {
-                    let at = (n * cfg.chunk_size + step) * a;
-                    sum += losses.data[at..at + a].iter().map(|&v| f64::from(v)).sum::<f64>();
-                    count += a;
-                }
+        let losses = row_losses(cfg, out.losses, pad);
+        // Rows whose instruction decides the goal again, told another goal's: the same frames, noise and times.
+        let another: Vec<Option<usize>> = rows.iter().map(|&row| examples.another_goal_task(row)).collect();
+        let mut told_another = vec![None; b];
+        if another.iter().any(Option::is_some) {
+            let tasks: Vec<usize> =
+                another.iter().zip(rows).map(|(t, &row)| t.unwrap_or_else(|| examples.task_index(row))).collect();
+            let told = examples.batch_told(rows, &tasks, cfg.chunk_size)?;
+            let out = model.forward_loss(
+                &Prepared::new(cfg, &told, &device)?,
+                prepare_actions(cfg, actions, &device),
+                noise,
+                &time,
+                Some(pad),
+                None,
+            );
+            for ((slot, loss), t) in told_another.iter_mut().zip(row_losses(cfg, out.losses, pad)).zip(&another) {
+                *slot = t.map(|_| loss);
             }
-            figures.push(RowFigures { row, loss: sum / count.max(1) as f64, squared_error: 0.0, action_values: 0 });
+        }
+        for ((&row, loss), loss_told_another_goal) in rows.iter().zip(losses).zip(told_another) {
+            figures.push(RowFigures { row, loss, loss_told_another_goal, squared_error: 0.0, action_values: 0 });
         }
 
         let sample_noise = gaussian_noise(&mut rng, [b, cfg.chunk_size, cfg.max_action_dim], &device);
@@ -124,4 +132,22 @@ pub fn heldout_metrics(
         action_l1: ae / n_act.max(1) as f64,
         rows: figures,
     })
+}
+
+/// Each row's loss as the batch's is taken: the squared errors of its unpadded steps' action values, averaged.
+fn row_losses(cfg: &SmolVlaConfig, losses: Tensor<3>, pad: &[bool]) -> Vec<f64> {
+    let a = cfg.action_dim();
+    let losses = HostTensor::from_tensor(losses.narrow(2, 0, a));
+    pad.chunks(cfg.chunk_size)
+        .enumerate()
+        .map(|(n, steps)| {
+            let (mut sum, mut count) = (0.0, 0usize);
+            for (step, _) in steps.iter().enumerate().filter(|(_, is_pad)| !**is_pad) {
+                let at = (n * cfg.chunk_size + step) * a;
+                sum += losses.data[at..at + a].iter().map(|&v| f64::from(v)).sum::<f64>();
+                count += a;
+            }
+            sum / count.max(1) as f64
+        })
+        .collect()
 }

@@ -151,6 +151,16 @@ impl TaskKind {
         }
     }
 
+    /// The instruction told in place of `instruction` to check that a policy reads it: where it belongs to a task
+    /// whose instruction decides the goal, the next goal's, as [`Arrangement::wrong_instruction`] names it on
+    /// that instruction's tables; else `None`.
+    pub fn another_goal(instruction: &str) -> Option<String> {
+        let task = Self::of_instruction(instruction).filter(|task| task.instruction_decides())?;
+        let all = task.instructions();
+        let at = all.iter().position(|i| i == instruction)?;
+        Some(all[(at + 1) % all.len()].clone())
+    }
+
     /// The task that gives `instruction`, if the sim's tasks give it.
     pub fn of_instruction(instruction: &str) -> Option<TaskKind> {
         TaskKind::ALL.into_iter().find(|task| task.instructions().iter().any(|i| i == instruction))
@@ -341,8 +351,12 @@ mod tests {
             let wrong = arrangement.wrong_instruction().unwrap();
             assert_ne!(wrong, arrangement.instruction());
             assert!(TaskKind::PickColour.instructions().contains(&wrong));
+            // The held-out evaluation, which has the instruction and not the table, tells the same other goal.
+            assert_eq!(TaskKind::another_goal(&arrangement.instruction()), Some(wrong));
             for task in [TaskKind::CubeInBowl, TaskKind::Stack, TaskKind::PushToTarget] {
-                assert_eq!(Arrangement::from_seed(task, seed).wrong_instruction(), None);
+                let arrangement = Arrangement::from_seed(task, seed);
+                assert_eq!(arrangement.wrong_instruction(), None);
+                assert_eq!(TaskKind::another_goal(&arrangement.instruction()), None);
             }
         }
     }

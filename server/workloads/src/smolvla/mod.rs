@@ -468,7 +468,8 @@ impl Workload for SmolVlaWorkload {
     }
 
     fn evaluator(&self) -> Result<Box<dyn Evaluator + Send>, BoxError> {
-        let examples = self.examples(&self.server_shard)?;
+        let mut examples = self.examples(&self.server_shard)?;
+        examples.add_other_goals(&self.tokenizer.tokenizer(), &self.cfg)?;
         let cpu = Device::flex();
         let store = self.frozen.overlaid(&self.trainable);
         Ok(Box::new(HeldOutEvaluator::new(&self.cfg, &store, examples, &cpu)))

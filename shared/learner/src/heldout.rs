@@ -1,7 +1,8 @@
 //! Held-out evaluation of a policy on shard rows it never trained on: the flow-matching loss with
 //! noise and times drawn from a fixed seed (so every round is measured the same way), and the
-//! MSE/L1 of sampled action chunks against the recorded ones, in robot units; and each row's share
-//! of both, for figures per task.
+//! MSE/L1 of sampled action chunks against the recorded ones, in robot units; each row's share
+//! of both, for figures per task; and for rows whose instruction decides the goal, the loss again
+//! told another goal's instruction (the language check on held-out data).
 
 use burn::tensor::Tensor;
 use fedvla_policy::batch::{Prepared, prepare_actions};

@@ -200,12 +200,14 @@ impl ShardExamples {
         missing.sort();
         missing.dedup();
         let ids = task_token_ids(tokenizer, &missing, cfg)?;
-        let len = self.shard.manifest.tokenizer_max_length;
+        // Padded to the length the shard's own were packed at, which its batches slice by.
+        let spec = ShardSpec { tokenizer_max_length: self.shard.manifest.tokenizer_max_length, ..shard_spec(cfg) };
         let (all_ids, all_mask) = self.shard.task_tokens.as_mut().expect("checked in new");
         for task in missing {
-            let tokens = &ids[&task];
-            all_ids.extend((0..len).map(|p| tokens.get(p).map_or(PAD_ID, |&t| i64::from(t))));
-            all_mask.extend((0..len).map(|p| u8::from(p < tokens.len())));
+            for (id, is_task) in spec.padded_task_tokens(&ids[&task]) {
+                all_ids.push(id);
+                all_mask.push(is_task);
+            }
             self.shard.manifest.tasks.push(task);
         }
         Ok(())

@@ -186,9 +186,9 @@ pub fn pack_shard(
         let (mut ids, mut mask) = (Vec::with_capacity(tasks.len() * l), Vec::with_capacity(tasks.len() * l));
         for task in &tasks {
             let tokens = tokenize(task);
-            for p in 0..l {
-                ids.push(i64::from(tokens.get(p).copied().unwrap_or(spec.pad_token_id)));
-                mask.push(u8::from(p < tokens.len()));
+            for (id, is_task) in spec.padded_task_tokens(&tokens) {
+                ids.push(id);
+                mask.push(is_task);
             }
         }
         tensors.insert("task_tokens".into(), i64_tensor(&ids, vec![tasks.len(), l]));

@@ -27,6 +27,16 @@ pub struct ShardSpec {
     pub pad_token_id: u32,
 }
 
+impl ShardSpec {
+    /// One task's token ids as a shard stores them (`task_tokens`, `task_attention_mask`): each position up to
+    /// `tokenizer_max_length` as its id, the pad id past the task's end, and whether it is the task's.
+    pub fn padded_task_tokens<'t>(&self, tokens: &'t [u32]) -> impl Iterator<Item = (i64, u8)> + use<'t> {
+        let pad = self.pad_token_id;
+        (0..self.tokenizer_max_length)
+            .map(move |p| (i64::from(tokens.get(p).copied().unwrap_or(pad)), u8::from(p < tokens.len())))
+    }
+}
+
 /// Describes a shard; stored inside it (safetensors metadata) and in the sidecar file.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ShardManifest {

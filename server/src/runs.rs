@@ -299,6 +299,7 @@ pub fn centralized(config: RunConfig, run_dir: RunDir, bars: &Bars) -> anyhow::R
             strategy: StrategyParams::plain("centralized"),
             // The optimizer's moments carry over from round to round: one continuous run.
             keep_optimizer_state: true,
+            opening_frames: config.opening_frames(),
             deadline_ms: config.round_deadline_ms,
             eval_request: false,
             rollout: None,

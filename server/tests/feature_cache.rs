@@ -20,6 +20,7 @@ fn task(round: u64) -> RoundTask {
         seed: 40 + round,
         strategy: StrategyParams::plain("fedavg"),
         keep_optimizer_state: false,
+        opening_frames: None,
         deadline_ms: 1,
         eval_request: false,
         rollout: None,

@@ -523,6 +523,7 @@ fn a_client_keeps_its_optimizer_moments_across_rounds_only_when_its_task_says_so
         seed: round,
         strategy: fedvla_federation::StrategyParams::plain("fedavg"),
         keep_optimizer_state,
+        opening_frames: None,
         deadline_ms: 60_000,
         eval_request: false,
         rollout: None,
@@ -619,4 +620,45 @@ async fn a_multi_task_federation_reports_every_task_and_the_language_check() {
         let tasks: Vec<Option<&str>> = results.episodes.iter().map(|e| e.task.as_deref()).collect();
         assert_eq!(tasks, names.iter().map(|n| Some(*n)).collect::<Vec<_>>(), "{}", dir.display());
     }
+}
+
+/// `opening-frames`: a pass of local steps draws the first frames of each pick-colour episode `repeat` times, and
+/// every other row (later pick-colour frames, cube-in-bowl's opening ones) once; without it, each row once.
+#[test]
+fn opening_frames_of_instruction_decides_episodes_are_drawn_more_often() {
+    use fedvla_sim::TaskKind;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("so100");
+    let tasks = vec![TaskKind::PickColour, TaskKind::CubeInBowl];
+    generate_dataset(
+        &data,
+        &GenDataOptions { episodes: 8, seed: 0, image_size: 32, tasks, ..Default::default() },
+        |_| {},
+    )
+    .unwrap();
+    let cfg = config(&data, &tmp.path().join("out"), 0)
+        .with_overrides("num-clients=1 min-clients=1 min-fit=1 opening-frames=6 opening-frames-repeat=3")
+        .unwrap();
+    let opening = cfg.opening_frames();
+    assert_eq!(opening, Some(fedvla_federation::OpeningFrames { frames: 6, repeat: 3 }));
+    assert!(cfg.with_overrides("opening-frames-repeat=0").is_err());
+    assert_eq!(cfg.with_overrides("opening-frames-repeat=1").unwrap().opening_frames(), None);
+    let workload = SmolVlaWorkload::prepare(&cfg, &tmp.path().join("shards")).unwrap();
+    let shard = fedvla_data::ClientShard::read(&tmp.path().join("shards/client_0.safetensors")).unwrap();
+    let examples = ShardExamples::new(shard.clone(), workload.policy_config()).unwrap();
+    assert_eq!(examples.training_draws(None), examples.train_rows);
+    let draws = examples.training_draws(opening);
+    let mut counts = std::collections::BTreeMap::<usize, usize>::new();
+    for row in draws {
+        *counts.entry(row).or_default() += 1;
+    }
+    let mut seen = std::collections::BTreeSet::new();
+    for &row in &examples.train_rows {
+        let task = TaskKind::of_instruction(&shard.manifest.tasks[shard.task_index[row] as usize]).unwrap();
+        let opens = shard.frame_index[row] < 6;
+        let expected = if task == TaskKind::PickColour && opens { 3 } else { 1 };
+        assert_eq!(counts[&row], expected, "row {row}: {task:?}, frame {}", shard.frame_index[row]);
+        seen.insert((task.name(), opens));
+    }
+    assert_eq!(seen.len(), 4, "both tasks' opening and later frames trained on: {seen:?}");
 }

@@ -220,6 +220,8 @@ pub struct RunConfig {
     pub lr_warmup_fraction: f64,
     pub lr_final_fraction: f64,
     pub keep_optimizer_state: bool,
+    pub opening_frames: u32,
+    pub opening_frames_repeat: u32,
     pub seed: u64,
     pub strategy: StrategyKind,
     pub proximal_mu: f64,
@@ -391,6 +393,15 @@ impl RunConfig {
         })
     }
 
+    /// How often clients draw the opening frames of episodes whose instruction decides the goal
+    /// (`opening-frames`, `opening-frames-repeat`); `None` where every frame is drawn as often.
+    pub fn opening_frames(&self) -> Option<fedvla_federation::OpeningFrames> {
+        (self.opening_frames > 0 && self.opening_frames_repeat > 1).then_some(fedvla_federation::OpeningFrames {
+            frames: self.opening_frames,
+            repeat: self.opening_frames_repeat,
+        })
+    }
+
     /// How clients encode their updates (`update-encoding`, `topk-fraction`).
     pub fn encoding(&self) -> UpdateEncoding {
         UpdateEncoding::parse(&self.update_encoding, self.topk_fraction).expect("validated with the config")
@@ -517,6 +528,11 @@ impl RunConfig {
                 "lr-warmup-fraction must be in [0, 1) and lr-final-fraction in [0, 1], got {} and {}",
                 self.lr_warmup_fraction, self.lr_final_fraction
             ));
+        }
+        if self.opening_frames_repeat == 0 {
+            return fail(
+                "opening-frames-repeat must be at least 1 (1: opening frames drawn as often as the rest)".into(),
+            );
         }
         if !(self.proximal_mu.is_finite() && self.proximal_mu >= 0.0) {
             return fail(format!("proximal-mu must be a non-negative number, got {}", self.proximal_mu));

@@ -303,6 +303,7 @@ mod tests {
             seed,
             strategy: StrategyParams::plain("fedavg"),
             keep_optimizer_state: false,
+            opening_frames: None,
             deadline_ms: 1000,
             eval_request: false,
             rollout: None,

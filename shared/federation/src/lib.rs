@@ -29,9 +29,9 @@ pub use error::{AggregateError, BoxError, CodecError, TensorError};
 pub use evaluate::{EvalMetrics, Evaluator, LanguageHeldOut, TaskHeldOut};
 pub use identity::Identity;
 pub use protocol::{
-    Capabilities, ClientMessage, ErrorCode, InstructionTokens, LrSchedule, ModelDeltas, PROTOCOL_VERSION,
-    RolloutEpisode, RolloutRequest, RolloutTasks, RoundMetrics, RoundTask, ServerMessage, StrategyParams,
-    UpdateEncoding, VolunteerSetup, WorkloadKind, routes,
+    Capabilities, ClientMessage, ErrorCode, InstructionTokens, LrSchedule, ModelDeltas, OpeningFrames,
+    PROTOCOL_VERSION, RolloutEpisode, RolloutRequest, RolloutTasks, RoundMetrics, RoundTask, ServerMessage,
+    StrategyParams, UpdateEncoding, VolunteerSetup, WorkloadKind, routes,
 };
 pub use seed::{fnv1a, mix};
 pub use strategy::{

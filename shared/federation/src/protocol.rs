@@ -286,6 +286,10 @@ pub struct RoundTask {
     /// round), so moments carry over only between tasks that both keep them.
     #[serde(default)]
     pub keep_optimizer_state: bool,
+    /// Draws the opening frames of episodes whose instruction decides the goal more often; `None`: every
+    /// training frame as often.
+    #[serde(default)]
+    pub opening_frames: Option<OpeningFrames>,
     /// Milliseconds from the task until the server closes the round.
     pub deadline_ms: u64,
     /// Whether the client should also report [`ClientMessage::EvalResult`].
@@ -346,6 +350,15 @@ pub struct LrSchedule {
     /// The learning rate the decay ends at.
     pub final_lr: f64,
     pub first_step: u64,
+}
+
+/// The first `frames` frames of each training episode whose instruction decides its goal (the sim's
+/// `pick-colour`), drawn `repeat` times as often as the other frames. Only there does the instruction, not the
+/// arm's motion towards its cube, tell the goal: a demonstration heads for its cube from its first frames.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct OpeningFrames {
+    pub frames: u32,
+    pub repeat: u32,
 }
 
 /// What a volunteer is offered on admission ([`ServerMessage::Admitted`]): its shard, the policy and the frozen
@@ -569,6 +582,7 @@ mod tests {
             seed: 0,
             strategy: StrategyParams::plain("fedavg"),
             keep_optimizer_state: false,
+            opening_frames: None,
             deadline_ms: 1,
             eval_request: false,
             rollout: None,

@@ -5,6 +5,7 @@
 use std::collections::BTreeMap;
 
 use fedvla_data::{ClientShard, DatasetInfo, ShardSpec};
+use fedvla_federation::OpeningFrames;
 use fedvla_federation::data_report::{
     DataReport, DatasetSignature, FeatureMoments, NORMALISED_FEATURES, NormalizationStats, OwnDataset,
 };
@@ -211,6 +212,22 @@ impl ShardExamples {
             self.shard.manifest.tasks.push(task);
         }
         Ok(())
+    }
+
+    /// The training rows one pass of local steps draws from: each once, except that with `opening` the opening
+    /// frames of episodes whose instruction decides the goal come `opening.repeat` times.
+    pub fn training_draws(&self, opening: Option<OpeningFrames>) -> Vec<usize> {
+        let Some(OpeningFrames { frames, repeat }) = opening else { return self.train_rows.clone() };
+        let decides: Vec<bool> =
+            self.shard.manifest.tasks.iter().map(|task| TaskKind::another_goal(task).is_some()).collect();
+        let opens = |row: usize| {
+            decides.get(self.task_index(row)).copied().unwrap_or(false)
+                && self.shard.frame_index.get(row).is_some_and(|&i| (0..i64::from(frames)).contains(&i))
+        };
+        self.train_rows
+            .iter()
+            .flat_map(|&row| std::iter::repeat_n(row, if opens(row) { repeat as usize } else { 1 }))
+            .collect()
     }
 
     /// The frames of its training episodes.

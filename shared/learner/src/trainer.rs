@@ -166,7 +166,7 @@ impl SmolVlaTrainer {
         let chunk = self.trainer.model.cfg.chunk_size;
         let batch_size = (task.batch_size as usize).clamp(1, rows.len());
         let mut rng = StdRng::seed_from_u64(task.seed);
-        let mut order = rows.clone();
+        let mut order = self.examples.training_draws(task.opening_frames);
         let mut cursor = order.len();
         let mut loss_sum = 0.0;
         for step in 0..task.local_steps {
@@ -227,8 +227,8 @@ impl LocalTrainer for SmolVlaTrainer {
         Ok(self.examples.set_norm_stats(stats)?)
     }
 
-    /// `local_steps` AdamW steps on batches drawn (seeded by the task) from the training rows,
-    /// each row visited once per pass.
+    /// `local_steps` AdamW steps on batches drawn (seeded by the task) from the training rows, each row visited
+    /// once per pass (the task's opening frames `repeat` times, see [`ShardExamples::training_draws`]).
     async fn train(&mut self, task: &RoundTask) -> Result<TrainOutput, BoxError> {
         self.train_with(task, async |_| {}).await
     }

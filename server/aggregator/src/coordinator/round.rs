@@ -177,6 +177,7 @@ impl Running {
                 seed: mix(mix(mix(cfg.seed, round), attempt), fnv1a(name)),
                 strategy: strategy_params,
                 keep_optimizer_state: cfg.keep_optimizer_state,
+                opening_frames: cfg.opening_frames(),
                 deadline_ms: cfg.round_deadline_ms,
                 eval_request: evaluates,
                 rollout: (cfg.client_rollout_episodes > 0 && evaluates).then(|| RolloutRequest {

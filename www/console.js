@@ -321,14 +321,17 @@ function successSeries(gallery) {
 }
 
 /// The last evaluated round's figures per task (`global.heldout_by_task`, `global.success_by_task`) and its
-/// language check (`global.language_check`); hidden for a run of one task, whose lines carry none.
+/// language checks, in the sim (`global.language_check`) and on the held-out rows (`global.heldout_language`);
+/// hidden for a run of one task whose instruction does not decide the goal, whose lines carry none.
 function renderTasks(lines) {
   const last = (key) => [...lines].reverse().find((line) => line.global?.[key])?.global?.[key];
   const heldOut = last("heldout_by_task") ?? [];
   const success = last("success_by_task") ?? [];
   const check = last("language_check");
+  const heldOutLanguage = last("heldout_language");
   const names = [...new Set([...heldOut.map((t) => t.task), ...success.map((t) => t.task)])];
-  $("#tasks").hidden = names.length === 0 && !check;
+  $("#tasks").hidden = names.length === 0 && !check && !heldOutLanguage;
+  $("#task-figures").hidden = names.length === 0;
   const rows = names.map((name) => {
     const h = heldOut.find((t) => t.task === name);
     const s = success.find((t) => t.task === name);
@@ -354,6 +357,19 @@ function renderTasks(lines) {
       `${interval(check.right)}, told another goal ${check.wrong_successes}/${check.episodes} ` +
       `${interval(check.wrong)} (Wilson 95%).`
     : "";
+  const l = heldOutLanguage;
+  $("#heldout-language").textContent = l
+    ? `Held-out language check (${l.task}, ${l.heldout_examples} rows): loss told the right goal ` +
+      `${formatNumber(l.loss_told_right)}, told another goal ${formatNumber(l.loss_told_another)} ` +
+      `(${formatPercentChange(l.loss_told_right, l.loss_told_another)}; a policy that ignores the instruction: 0%).`
+    : "";
+}
+
+/// `after` against `before`, as a signed percentage.
+function formatPercentChange(before, after) {
+  if (!isNumber(before) || !isNumber(after) || before === 0) return "-";
+  const change = (100 * (after - before)) / before;
+  return `${change >= 0 ? "+" : ""}${change.toFixed(1)}%`;
 }
 
 function isNumber(value) {

@@ -247,14 +247,6 @@ impl ShardExamples {
 
     /// The batch of `rows` for a policy with chunk size `chunk`.
     pub fn batch(&self, rows: &[usize], chunk: usize) -> Result<Batch, PolicyError> {
-        let tasks: Vec<usize> = rows.iter().map(|&row| self.task_index(row)).collect();
-        self.batch_told(rows, &tasks, chunk)
-    }
-
-    /// The batch of `rows` each told the instruction of the shard's task of the same place in `tasks` (an index
-    /// among the shard's tasks) instead of its own.
-    pub fn batch_told(&self, rows: &[usize], tasks: &[usize], chunk: usize) -> Result<Batch, PolicyError> {
-        assert_eq!(rows.len(), tasks.len(), "one task a row");
         let m = &self.shard.manifest;
         let (w, h) = (m.image_width as usize, m.image_height as usize);
         let b = rows.len();
@@ -279,11 +271,7 @@ impl ShardExamples {
         let mut state = Vec::with_capacity(b * sd);
         let mut actions = Vec::with_capacity(b * chunk * ad);
         let mut is_pad = Vec::with_capacity(b * chunk);
-        let (all_ids, all_mask) = self.shard.task_tokens.as_ref().expect("checked in new");
-        let len = m.tokenizer_max_length;
-        let mut lang_tokens = Vec::with_capacity(b * len);
-        let mut lang_mask = Vec::with_capacity(b * len);
-        for (&row, &task) in rows.iter().zip(tasks) {
+        for &row in rows {
             state.extend(state_stats.normalize(&self.shard.state[row * sd..(row + 1) * sd]));
             let (chunk_values, pad) = self
                 .shard
@@ -291,17 +279,35 @@ impl ShardExamples {
                 .ok_or_else(|| PolicyError::Input(format!("shard row {row} is in no episode")))?;
             actions.extend(action_stats.normalize(&chunk_values));
             is_pad.extend(pad);
-            lang_tokens.extend_from_slice(&all_ids[task * len..(task + 1) * len]);
-            lang_mask.extend(all_mask[task * len..(task + 1) * len].iter().map(|&m| m != 0));
         }
+        let tasks: Vec<usize> = rows.iter().map(|&row| self.task_index(row)).collect();
+        let (lang_tokens, lang_mask) = self.instructions(&tasks);
         Ok(Batch {
             images,
             lang_tokens,
             lang_mask,
-            lang_len: len,
+            lang_len: m.tokenizer_max_length,
             state: HostTensor::new(vec![b, sd], state),
             actions: Some(HostTensor::new(vec![b, chunk, ad], actions)),
             action_is_pad: Some(is_pad),
         })
+    }
+
+    /// `batch` (its frames, state and actions) with each row told the instruction of the shard's task of the same
+    /// place in `tasks` (an index among the shard's tasks) instead of its own.
+    pub fn told(&self, batch: &Batch, tasks: &[usize]) -> Batch {
+        assert_eq!(batch.state.shape[0], tasks.len(), "one task a row");
+        let (lang_tokens, lang_mask) = self.instructions(tasks);
+        Batch { lang_tokens, lang_mask, ..batch.clone() }
+    }
+
+    /// The token ids and attention mask of each of `tasks` (indices among the shard's tasks), one after another.
+    fn instructions(&self, tasks: &[usize]) -> (Vec<i64>, Vec<bool>) {
+        let (all_ids, all_mask) = self.shard.task_tokens.as_ref().expect("checked in new");
+        let len = self.shard.manifest.tokenizer_max_length;
+        let ids = tasks.iter().flat_map(|&task| all_ids[task * len..(task + 1) * len].iter().copied()).collect();
+        let mask =
+            tasks.iter().flat_map(|&task| all_mask[task * len..(task + 1) * len].iter().map(|&m| m != 0)).collect();
+        (ids, mask)
     }
 }

@@ -90,7 +90,7 @@ pub fn heldout_metrics(
         if another.iter().any(Option::is_some) {
             let tasks: Vec<usize> =
                 another.iter().zip(rows).map(|(t, &row)| t.unwrap_or_else(|| examples.task_index(row))).collect();
-            let told = examples.batch_told(rows, &tasks, cfg.chunk_size)?;
+            let told = examples.told(&batch, &tasks);
             let out = model.forward_loss(
                 &Prepared::new(cfg, &told, &device)?,
                 prepare_actions(cfg, actions, &device),

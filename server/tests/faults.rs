@@ -76,14 +76,8 @@ async fn straggler_and_dropped_clients_do_not_stall_the_round() {
     assert_eq!(updates.len(), 2);
     updates.push(leaver_update);
     assert_close(&run_dir.load_model(1).unwrap(), &weighted_mean(&updates), 1e-6);
-    let line = &metrics(run_dir.path())[1];
-    let accepted: Vec<&str> = line["clients"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|c| c["accepted"] == true)
-        .map(|c| c["name"].as_str().unwrap())
-        .collect();
+    let line = &metrics_lines(run_dir.path())[1];
+    let accepted: Vec<&str> = line.clients.iter().filter(|c| c.accepted).map(|c| c.name.as_str()).collect();
     assert_eq!(accepted, ["client-0", "client-1", "client-4"]);
 }
 
@@ -103,9 +97,9 @@ async fn too_few_updates_retry_the_round() {
     assert_eq!(status.completed_rounds, 1);
     first.await.unwrap().unwrap();
     second.await.unwrap().unwrap();
-    let lines = metrics(run_dir.path());
+    let lines = metrics_lines(run_dir.path());
     assert_eq!(lines.len(), 2, "a retried attempt is not a round");
-    assert!(lines[1]["attempt"].as_u64().unwrap() >= 1);
+    assert!(lines[1].attempt.expect("the closing attempt recorded") >= 1);
 }
 
 /// An update for the running round from a client the round did not sample, and a second update from a sampled
@@ -267,7 +261,7 @@ async fn bad_clients_are_refused_counted_and_the_server_carries_on() {
     for (task, _) in clients {
         task.await.unwrap().unwrap();
     }
-    let line = &metrics(run_dir.path())[1];
-    assert_eq!(line["rejections"]["non_finite"], 1);
-    assert_eq!(line["rejections"]["protocol_version"], 2);
+    let line = &metrics_lines(run_dir.path())[1];
+    assert_eq!(line.rejections.get("non_finite"), Some(&1), "{line:?}");
+    assert_eq!(line.rejections.get("protocol_version"), Some(&2), "{line:?}");
 }

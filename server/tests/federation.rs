@@ -67,24 +67,24 @@ async fn three_clients_two_rounds() {
     let frozen_bytes = (linreg::FEATURES * linreg::INPUTS * 4) as u64;
     assert!(expected_bytes < spec.byte_size() as u64 + frozen_bytes);
 
-    let lines = metrics(&dir);
-    assert_eq!(lines.iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 1, 2]);
-    assert!(lines[0]["clients"].as_array().unwrap().is_empty());
+    let lines = metrics_lines(&dir);
+    assert_eq!(lines.iter().map(|l| l.round).collect::<Vec<_>>(), [0, 1, 2]);
+    assert!(lines[0].clients.is_empty());
     for line in &lines[1..] {
-        let clients = line["clients"].as_array().unwrap();
+        let clients = &line.clients;
         assert_eq!(clients.len(), 3);
         for c in clients {
-            assert_eq!(c["update_bytes"].as_u64(), Some(expected_bytes), "{c}");
-            assert!(c["train_loss"].as_f64().unwrap() > 0.0);
-            assert!(c["examples"].as_u64().unwrap() >= 48);
-            assert!(c["seconds"].as_f64().is_some());
-            assert!(c["bytes_up"].as_u64().unwrap() >= expected_bytes);
-            assert!(c["bytes_down"].as_u64().unwrap() > 0);
-            assert!(c["eval_loss"].as_f64().is_some());
+            assert_eq!(c.update_bytes, Some(expected_bytes), "{c:?}");
+            assert!(c.train_loss.expect("train loss recorded") > 0.0);
+            assert!(c.examples.expect("examples recorded") >= 48);
+            assert!(c.seconds.is_some());
+            assert!(c.bytes_up.expect("bytes up recorded") >= expected_bytes);
+            assert!(c.bytes_down.expect("bytes down recorded") > 0);
+            assert!(c.eval_loss.is_some());
         }
     }
     // Held-out loss of the global model falls.
-    let loss = |i: usize| lines[i]["global"]["heldout_loss"].as_f64().unwrap();
+    let loss = |i: usize| heldout_loss(&lines[i]);
     assert!(loss(2) < loss(1) && loss(1) < loss(0), "{} {} {}", loss(0), loss(1), loss(2));
     assert!(dir.join("global_model/round_0").join(TRAINABLE_FILE).exists());
     assert!(dir.join("config.toml").exists());

@@ -23,7 +23,7 @@ async fn killed_after_round_one_then_resumed() {
         task.abort();
     }
     let round_one = std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap();
-    let rounds = |dir| metrics(dir).iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>();
+    let rounds = |dir| metrics_lines(dir).iter().map(|l| l.round).collect::<Vec<_>>();
     assert_eq!(rounds(&dir), [0, 1]);
 
     // Second life: resume from the run directory, as `fedvla serve --resume` does.
@@ -44,13 +44,13 @@ async fn killed_after_round_one_then_resumed() {
     }
     assert_eq!(rounds(&dir), [0, 1, 2]);
     assert_eq!(std::fs::read(dir.join("global_model/round_1").join(TRAINABLE_FILE)).unwrap(), round_one);
-    let crc = |round: usize| metrics(&dir)[round]["model_crc32"].as_u64().unwrap() as u32;
+    let crc = |round: usize| metrics_lines(&dir)[round].model_crc32;
     assert_eq!(crc(1), run_dir.load_model(1).unwrap().checksum());
     assert_eq!(crc(2), run_dir.load_model(2).unwrap().checksum());
     assert_close(&run_dir.load_model(2).unwrap(), &weighted_mean(&updates), 1e-6);
     // Round 2 started from round 1's model: only version 1 was served, and the clients fetched it.
-    assert_eq!(metrics(&dir)[2]["model_version"].as_u64(), Some(2));
-    let loss = |i: usize| metrics(&dir)[i]["global"]["heldout_loss"].as_f64().unwrap();
+    assert_eq!(metrics_lines(&dir)[2].model_version, 2);
+    let loss = |i: usize| heldout_loss(&metrics_lines(&dir)[i]);
     assert!(loss(2) < loss(1), "round 2 built on round 1");
 }
 

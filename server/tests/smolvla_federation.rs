@@ -2,13 +2,15 @@
 //! WebSockets on episodes the SO-100 sim recorded. Aggregation exactness, wire bytes (trainable
 //! tensors only), metrics, LeRobot export and seed determinism.
 
+mod common;
+
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use burn::tensor::Device;
 use fedvla_aggregator::config::{ComputeDevice, RunConfig};
 use fedvla_aggregator::records::RolloutResults;
-use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir, TRAINABLE_FILE};
+use fedvla_aggregator::run_dir::{RunDir, TRAINABLE_FILE};
 use fedvla_app::server;
 use fedvla_data::LeRobotDataset;
 use fedvla_federation::RolloutOutput;
@@ -26,6 +28,8 @@ use fedvla_workloads::datagen::{GenDataOptions, generate_dataset};
 use fedvla_workloads::sim_eval::FilmedRollouts;
 use fedvla_workloads::smolvla::SmolVlaWorkload;
 use fedvla_workloads::workload::{Workload, server_parts};
+
+use common::{heldout_loss, metrics_lines};
 
 /// Records every update it sends; hangs from round `hang_from_round` on (a client stuck mid-round).
 struct Recording {
@@ -155,10 +159,6 @@ fn spawn_clients(
         .collect()
 }
 
-fn metrics(dir: &Path) -> Vec<serde_json::Value> {
-    std::fs::read_to_string(dir.join(METRICS_FILE)).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn smolvla_three_clients_two_rounds_on_sim_data() {
     let tmp = tempfile::tempdir().unwrap();
@@ -196,19 +196,19 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
         + 4
         + spec.iter().map(|(n, s)| 4 + n.len() + 4 + 8 * s.len() + 4 * s.iter().product::<usize>()).sum::<usize>();
     let frames = payload.div_ceil(first.cfg.max_frame_bytes - HEADER_LEN);
-    let lines = metrics(&first.dir);
-    assert_eq!(lines.iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 1, 2]);
+    let lines = metrics_lines(&first.dir);
+    assert_eq!(lines.iter().map(|l| l.round).collect::<Vec<_>>(), [0, 1, 2]);
     let cfg = fedvla_policy::SmolVlaConfig::tiny();
     let frozen: usize = cfg.param_specs().iter().filter(|s| !s.trainable).map(|s| s.numel() * 4).sum();
     for (round, line) in lines.iter().enumerate().skip(1) {
-        assert!(line["global"]["heldout_loss"].as_f64().unwrap().is_finite());
-        for c in line["clients"].as_array().unwrap() {
-            let update = c["update_bytes"].as_u64().unwrap();
-            assert_eq!(update, (payload + frames * HEADER_LEN) as u64, "{c}");
+        assert!(heldout_loss(line).is_finite());
+        for c in &line.clients {
+            let update = c.update_bytes.expect("update bytes recorded");
+            assert_eq!(update, (payload + frames * HEADER_LEN) as u64, "{c:?}");
             // bytes_up counts every round so far: one update each, a few small JSON messages, and the rollout
             // videos uploaded in the rounds so far.
-            let up = c["bytes_up"].as_u64().unwrap();
-            let client = c["client_id"].as_u64().unwrap();
+            let up = c.bytes_up.expect("bytes up recorded");
+            let client = c.client_id;
             let videos: u64 = (1..=round as u64)
                 .filter_map(|r| std::fs::read_dir(first.dir.join(format!("evaluate/round_{r}/client_{client}"))).ok())
                 .flatten()
@@ -216,20 +216,20 @@ async fn smolvla_three_clients_two_rounds_on_sim_data() {
                 .filter(|p| p.extension().is_some_and(|e| e == "mp4"))
                 .map(|p| std::fs::metadata(p).unwrap().len())
                 .sum();
-            assert!(up >= round as u64 * update + videos && up < round as u64 * (update + 4096) + videos, "{c}");
+            assert!(up >= round as u64 * update + videos && up < round as u64 * (update + 4096) + videos, "{c:?}");
             assert!(update < frozen as u64);
         }
     }
-    assert!(lines[0]["global"]["heldout_loss"].as_f64().unwrap().is_finite(), "round 0 evaluates the initial model");
+    assert!(heldout_loss(&lines[0]).is_finite(), "round 0 evaluates the initial model");
 
     // Every round's global model is also a LeRobot policy directory.
     let policy = PolicyDir::load(&first.dir.join("global_model/round_2/policy")).unwrap();
     assert!(policy.stats.is_some() && policy.vlm_dir.is_some());
     // ... and is rolled out in the sim, filmed.
     let rollouts = first.dir.join("global_model/round_2/rollouts");
-    let results: serde_json::Value =
+    let results: RolloutResults =
         serde_json::from_str(&std::fs::read_to_string(rollouts.join("results.json")).unwrap()).unwrap();
-    assert_eq!(results["episodes"].as_array().unwrap().len(), 1);
+    assert_eq!(results.episodes.len(), 1);
     assert!(std::fs::metadata(rollouts.join("episode_0.mp4")).unwrap().len() > 1000);
     // Native volunteers film their own rollouts too: every client's evaluation in round 1 holds its MP4, on
     // layouts of its own.
@@ -272,7 +272,7 @@ async fn scaffold_corrects_the_clients_of_the_tiny_smolvla() {
     assert_eq!(round(&scaffold, 1), round(&fedavg, 1), "round 1's corrections are zero");
     assert_ne!(round(&scaffold, 2), round(&fedavg, 2), "round 2's corrections move the clients' steps");
     let loss = |run: &Run, i: usize| {
-        let lines = fedvla_aggregator::records::read_metrics(&run.dir).unwrap();
+        let lines = metrics_lines(&run.dir);
         lines[i].global.as_ref().and_then(|g| g.eval.as_ref()).expect("evaluated").heldout_loss
     };
     // Six steps from random weights move the held-out loss little either way: the corrections steer the clients,
@@ -328,7 +328,7 @@ async fn every_strategy_federates_the_tiny_smolvla() {
             .with_overrides(&format!("strategy={strategy} {extra} rollout-episodes=0 client-rollout-episodes=0"))
             .unwrap();
         let run = run_with(cfg).await;
-        let lines = fedvla_aggregator::records::read_metrics(&run.dir).unwrap();
+        let lines = metrics_lines(&run.dir);
         let mut previous = run.initial.clone();
         for round in 1..=2 {
             let global = NamedTensors::from_safetensors(
@@ -399,7 +399,7 @@ async fn a_server_killed_after_round_one_resumes_round_two_on_the_real_workload(
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         server::start(parts, listener).unwrap()
     };
-    let rounds = || metrics(&dir).iter().map(|l| l["round"].as_u64().unwrap()).collect::<Vec<_>>();
+    let rounds = || metrics_lines(&dir).iter().map(|l| l.round).collect::<Vec<_>>();
 
     // First life: the clients hang in round 2, so the kill lands while round 2 is in flight. Their threads stay
     // parked on the hang; the test does not wait for them.
@@ -576,24 +576,25 @@ async fn a_multi_task_federation_reports_every_task_and_the_language_check() {
     assert!(picks.len() >= 2, "right and wrong colours tokenise apart: {picks:?}");
 
     let run = run_with(cfg).await;
-    let lines = metrics(&run.dir);
+    let lines = metrics_lines(&run.dir);
     for line in &lines {
-        let global = &line["global"];
-        let by_task = global["heldout_by_task"].as_array().unwrap_or_else(|| panic!("{global}"));
-        assert!(by_task.len() >= 2, "{global}");
-        let rows: u64 = by_task.iter().map(|t| t["heldout_examples"].as_u64().unwrap()).sum();
-        assert_eq!(rows, global["heldout_examples"].as_u64().unwrap());
+        let global = line.global.as_ref().unwrap_or_else(|| panic!("round {} has no global figures", line.round));
+        let eval = global.eval.as_ref().unwrap_or_else(|| panic!("no held-out evaluation: {global:?}"));
+        let by_task = &eval.heldout_by_task;
+        assert!(by_task.len() >= 2, "{global:?}");
+        let rows: u64 = by_task.iter().map(|t| t.heldout_examples).sum();
+        assert_eq!(rows, eval.heldout_examples);
         for task in by_task {
-            assert!(names.contains(&task["task"].as_str().unwrap()), "{task}");
-            assert!(task["heldout_loss"].as_f64().unwrap().is_finite() && task["action_mse"].as_f64().is_some());
+            assert!(names.contains(&task.task.as_str()), "{task:?}");
+            assert!(task.heldout_loss.is_finite() && task.action_mse.is_some());
         }
-        let success: Vec<&str> =
-            global["success_by_task"].as_array().unwrap().iter().map(|t| t["task"].as_str().unwrap()).collect();
-        assert_eq!(success, names, "{global}");
-        let check = &global["language_check"];
-        assert_eq!((check["task"].as_str(), check["episodes"].as_u64()), (Some("pick-colour"), Some(1)), "{global}");
-        for rate in ["right", "wrong"] {
-            assert!(check[rate]["ci95_low"].as_f64().unwrap() <= check[rate]["ci95_high"].as_f64().unwrap());
+        let sim = global.sim.as_ref().unwrap_or_else(|| panic!("no sim figures: {global:?}"));
+        let success: Vec<&str> = sim.success_by_task.iter().map(|t| t.task.as_str()).collect();
+        assert_eq!(success, names, "{global:?}");
+        let check = sim.language_check.as_ref().unwrap_or_else(|| panic!("no language check: {global:?}"));
+        assert_eq!((check.task.as_str(), check.episodes), ("pick-colour", 1), "{global:?}");
+        for rate in [&check.right, &check.wrong] {
+            assert!(rate.ci95_low <= rate.ci95_high);
         }
     }
 

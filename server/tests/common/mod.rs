@@ -10,6 +10,7 @@ use std::time::Duration;
 use fedvla_aggregator::config::{Partitioning, RunConfig};
 use fedvla_aggregator::coordinator::RunStatus;
 use fedvla_aggregator::parts::ServerParts;
+use fedvla_aggregator::records::{MetricsLine, read_metrics};
 use fedvla_aggregator::run_dir::{METRICS_FILE, RunDir};
 use fedvla_app::server::{self, ServerHandle};
 use fedvla_federation::{
@@ -188,9 +189,21 @@ pub fn spawn_trainer_at(
     })
 }
 
-/// The metrics lines of a run.
+/// The metrics lines of a run, as JSON values: for the tests that check what the console and the browser read of
+/// them by key.
 pub fn metrics(dir: &Path) -> Vec<serde_json::Value> {
     std::fs::read_to_string(dir.join(METRICS_FILE)).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
+/// The metrics lines of a run, as the record the coordinator writes.
+pub fn metrics_lines(dir: &Path) -> Vec<MetricsLine> {
+    read_metrics(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+}
+
+/// The global model's held-out loss in a metrics line (the round must have evaluated it).
+pub fn heldout_loss(line: &MetricsLine) -> f64 {
+    let eval = line.global.as_ref().and_then(|g| g.eval.as_ref());
+    eval.unwrap_or_else(|| panic!("round {} has no held-out evaluation: {line:?}", line.round)).heldout_loss
 }
 
 /// The example-weighted mean, computed here independently of the strategy.

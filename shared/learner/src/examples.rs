@@ -218,8 +218,13 @@ impl ShardExamples {
     /// frames of episodes whose instruction decides the goal come `opening.repeat` times.
     pub fn training_draws(&self, opening: Option<OpeningFrames>) -> Vec<usize> {
         let Some(OpeningFrames { frames, repeat }) = opening else { return self.train_rows.clone() };
-        let decides: Vec<bool> =
-            self.shard.manifest.tasks.iter().map(|task| TaskKind::another_goal(task).is_some()).collect();
+        let decides: Vec<bool> = self
+            .shard
+            .manifest
+            .tasks
+            .iter()
+            .map(|task| TaskKind::of_instruction(task).is_some_and(TaskKind::instruction_decides))
+            .collect();
         let opens = |row: usize| {
             decides.get(self.task_index(row)).copied().unwrap_or(false)
                 && self.shard.frame_index.get(row).is_some_and(|&i| (0..i64::from(frames)).contains(&i))

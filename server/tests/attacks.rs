@@ -31,19 +31,24 @@ fn final_loss(overrides: &str) -> f64 {
     last_loss(&federation(&format!("update-norm-factor=0 {overrides}")))
 }
 
-/// The server's norm screen (on by default) leaves the attacker scaling its change by 100 out of every round, before
-/// FedAvg sees it: the run ends where the four honest clients alone take it, and every refusal is on record.
+/// The server's norm screen (on by default) leaves an attacker scaling its change by 100, or flipping it and scaling
+/// by 10, out of every round, before FedAvg sees it: the run ends where the four honest clients alone take it, and
+/// every refusal is on record.
 #[test]
-fn the_norm_screen_leaves_a_scaled_update_out_before_fedavg_sees_it() {
+fn the_norm_screen_leaves_a_scaled_or_flipped_update_out_before_fedavg_sees_it() {
     let four = "strategy=fedavg min-fit=4";
-    let screened = federation(&format!("{four} attackers=1 attack=scale attack-strength=100"));
     let clean = final_loss(four);
-    assert!((last_loss(&screened) - clean).abs() < 0.5 * clean, "{} against {clean}", last_loss(&screened));
-    for line in &screened[1..] {
-        assert_eq!(line.rejections.get("update_norm_outlier"), Some(&1), "round {}", line.round);
-        let dropped: Vec<_> = line.clients.iter().filter(|c| !c.accepted).collect();
-        assert_eq!(dropped.len(), 1, "round {}", line.round);
-        assert!(dropped[0].dropped.as_deref().is_some_and(|r| r.contains("median norm")), "{:?}", dropped[0]);
+    // At the default factor (3) a change sent 10x larger is out whichever way it points.
+    for attack in ["attack=scale attack-strength=100", "attack=sign-flip attack-strength=10"] {
+        let screened = federation(&format!("{four} attackers=1 {attack}"));
+        let loss = last_loss(&screened);
+        assert!((loss - clean).abs() < 0.5 * clean, "{attack}: {loss} against {clean}");
+        for line in &screened[1..] {
+            assert_eq!(line.rejections.get("update_norm_outlier"), Some(&1), "{attack}, round {}", line.round);
+            let dropped: Vec<_> = line.clients.iter().filter(|c| !c.accepted).collect();
+            assert_eq!(dropped.len(), 1, "{attack}, round {}", line.round);
+            assert!(dropped[0].dropped.as_deref().is_some_and(|r| r.contains("median norm")), "{:?}", dropped[0]);
+        }
     }
     // Honest clients are never screened out.
     let honest = federation(four);

@@ -340,6 +340,7 @@ async fn every_strategy_runs_a_federation_and_the_held_out_loss_falls() {
     for (strategy, extra) in [
         ("fedavg", ""),
         ("fedavg", "clip-update-norm=0.5"),
+        ("fedavg", "clip-update-norm=0.5 clip-update-quantile=0.5"),
         ("fedprox", ""),
         ("fedavgm", ""),
         ("fedadagrad", ""),

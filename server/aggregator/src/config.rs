@@ -236,6 +236,7 @@ pub struct RunConfig {
     pub krum_f: usize,
     pub krum_keep: usize,
     pub clip_update_norm: f64,
+    pub clip_update_quantile: f64,
     pub update_norm_factor: f64,
     pub dp_noise_multiplier: f64,
     pub dp_clip_norm: f64,
@@ -591,6 +592,16 @@ impl RunConfig {
         if !(self.clip_update_norm.is_finite() && self.clip_update_norm >= 0.0) {
             return fail(format!("clip-update-norm must be 0 (off) or positive, got {}", self.clip_update_norm));
         }
+        if !(0.0..1.0).contains(&self.clip_update_quantile)
+            || self.clip_update_quantile > 0.0
+                && (self.clip_update_norm == 0.0 || !(self.dp_clip_lr.is_finite() && self.dp_clip_lr > 0.0))
+        {
+            return fail(format!(
+                "clip-update-quantile must be in [0, 1) and, above 0, needs the norm it starts from, clip-update-norm \
+                 > 0, and a positive dp-clip-lr; got {}, {} and {}",
+                self.clip_update_quantile, self.clip_update_norm, self.dp_clip_lr
+            ));
+        }
         if !(self.update_norm_factor == 0.0 || self.update_norm_factor.is_finite() && self.update_norm_factor >= 1.0) {
             return fail(format!("update-norm-factor must be 0 (off) or at least 1, got {}", self.update_norm_factor));
         }
@@ -727,6 +738,15 @@ mod tests {
         assert!(err.contains("needs at least 7 updates") && err.contains("min-fit is 5"), "{err}");
         let ok = RunConfig::default().with_overrides("strategy=krum krum-f=1 num-clients=5 min-clients=5 min-fit=5");
         assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    #[test]
+    fn an_adaptive_clip_needs_a_norm_to_start_from() {
+        let err = RunConfig::default().with_overrides("clip-update-quantile=0.5").unwrap_err().to_string();
+        assert!(err.contains("clip-update-quantile") && err.contains("clip-update-norm"), "{err}");
+        let err = RunConfig::default().with_overrides("clip-update-norm=1 clip-update-quantile=1").unwrap_err();
+        assert!(err.to_string().contains("[0, 1)"), "{err}");
+        assert!(RunConfig::default().with_overrides("clip-update-norm=1 clip-update-quantile=0.5").is_ok());
     }
 
     #[test]

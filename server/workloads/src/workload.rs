@@ -67,8 +67,10 @@ pub fn strategy(c: &RunConfig) -> Box<dyn Strategy> {
         };
         let seed = mix(c.seed, fnv1a("dp-noise"));
         Box::new(DpFedAvg::new(rule, c.dp_noise_multiplier, clip, c.dp_sampling_rate(), c.dp_delta, seed))
+    } else if c.clip_update_quantile > 0.0 {
+        Box::new(ClippedUpdates::adaptive(rule, c.clip_update_norm, c.clip_update_quantile, c.dp_clip_lr))
     } else if c.clip_update_norm > 0.0 {
-        Box::new(ClippedUpdates { inner: rule, max_norm: c.clip_update_norm })
+        Box::new(ClippedUpdates::fixed(rule, c.clip_update_norm))
     } else {
         rule
     }

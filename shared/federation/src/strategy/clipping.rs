@@ -1,7 +1,11 @@
 //! Update-norm clipping, a wrapper around any strategy: each client's change from the global model it started
-//! from, `update - global`, is scaled down to at most `max_norm` (L2 over every trainable tensor) before the
+//! from, `update - global`, is scaled down to at most the clipping norm (L2 over every trainable tensor) before the
 //! wrapped rule sees it, so no single client can move the model further than that in a round. It is the
-//! clipping half of DP-FedAvg (McMahan et al. 2018) and a defence against scaled updates on its own.
+//! clipping half of DP-FedAvg (McMahan et al. 2018) and a defence against scaled updates on its own. The norm is
+//! fixed, or adaptive (Andrew et al. 2021, "Differentially Private Learning with Adaptive Clipping"): after each
+//! round `C <- C * exp(-lr * (b - gamma))`, `b` the fraction of the round's changes within `C`, so `C` follows the
+//! `gamma` quantile of the changes' norms as they shrink over a decaying learning rate (a fixed norm set from one
+//! round's norms clips every honest change early in a run and none of an attacker's late in it).
 
 use super::dp::PrivacyReport;
 use super::interface::{Aggregation, Contribution, Step, Strategy};
@@ -9,9 +13,71 @@ use crate::error::AggregateError;
 use crate::protocol::StrategyParams;
 use crate::tensors::NamedTensors;
 
+/// State key: the clipping norm the next round clips to (an adaptive norm only).
+const CLIP_NORM_KEY: &str = "clip/norm";
+/// The fraction of a round's changes within the norm, carried from the round's aggregate to its step.
+const WITHIN_KEY: &str = "clip/within-fraction";
+
+/// How the clipping norm is chosen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ClipNorm {
+    Fixed(f64),
+    /// Starts at `initial` and follows the `target_quantile` of the clients' change norms, at rate `lr`, the count
+    /// of clipped clients noised with standard deviation `count_stddev` (DP-FedAvg's; 0 for clipping alone).
+    Adaptive {
+        initial: f64,
+        target_quantile: f64,
+        lr: f64,
+        count_stddev: f64,
+    },
+}
+
+impl ClipNorm {
+    pub(super) fn initial(self) -> f64 {
+        match self {
+            ClipNorm::Fixed(norm) | ClipNorm::Adaptive { initial: norm, .. } => norm,
+        }
+    }
+
+    /// The norm after a round that clipped to `current` and found the fraction `within` of its changes within it
+    /// (`None`: no round to learn from); kept as the f32 a saved state holds, so a resumed run clips as an
+    /// uninterrupted one.
+    pub(super) fn next(self, current: f32, within: Option<f32>) -> f32 {
+        match (self, within) {
+            (ClipNorm::Adaptive { target_quantile, lr, .. }, Some(b)) => {
+                (f64::from(current) * (-lr * (f64::from(b) - target_quantile)).exp()) as f32
+            }
+            _ => current,
+        }
+    }
+}
+
+/// Clipping around `inner`.
 pub struct ClippedUpdates {
     pub inner: Box<dyn Strategy>,
-    pub max_norm: f64,
+    pub clip: ClipNorm,
+    clip_norm: f32,
+}
+
+impl ClippedUpdates {
+    /// Every change clipped to `max_norm`.
+    pub fn fixed(inner: Box<dyn Strategy>, max_norm: f64) -> Self {
+        Self::new(inner, ClipNorm::Fixed(max_norm))
+    }
+
+    /// Every change clipped to a norm that starts at `initial` and follows the `target_quantile` of the changes'
+    /// norms at rate `lr`.
+    pub fn adaptive(inner: Box<dyn Strategy>, initial: f64, target_quantile: f64, lr: f64) -> Self {
+        Self::new(inner, ClipNorm::Adaptive { initial, target_quantile, lr, count_stddev: 0.0 })
+    }
+
+    fn new(inner: Box<dyn Strategy>, clip: ClipNorm) -> Self {
+        Self { inner, clip, clip_norm: clip.initial() as f32 }
+    }
+
+    fn adapts(&self) -> bool {
+        matches!(self.clip, ClipNorm::Adaptive { .. })
+    }
 }
 
 impl Strategy for ClippedUpdates {
@@ -20,19 +86,52 @@ impl Strategy for ClippedUpdates {
     }
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
-        Box::new(Clipping { global: global.clone(), max_norm: self.max_norm, inner: self.inner.begin(global) })
+        Box::new(Clipping {
+            global: global.clone(),
+            max_norm: f64::from(self.clip_norm),
+            count_within: self.adapts(),
+            inner: self.inner.begin(global),
+            folded: 0,
+            within: 0,
+        })
     }
 
     fn step(&self, global: &NamedTensors, aggregate: NamedTensors) -> Result<Step, AggregateError> {
-        self.inner.step(global, aggregate)
+        if !self.adapts() {
+            return self.inner.step(global, aggregate);
+        }
+        let mut mean = NamedTensors::new();
+        let mut within = None;
+        for (name, t) in aggregate.iter() {
+            match name {
+                WITHIN_KEY => within = t.values.first().copied(),
+                _ => mean.insert(name, t.shape.clone(), t.values.clone()).expect("aggregate shape"),
+            }
+        }
+        let step = self.inner.step(global, mean)?;
+        let mut state = step.state;
+        state.insert(CLIP_NORM_KEY, vec![1], vec![self.clip.next(self.clip_norm, within)]).expect("scalar");
+        Ok(Step { global: step.global, state })
     }
 
     fn commit(&mut self, state: NamedTensors) {
-        self.inner.commit(state);
+        if !self.adapts() {
+            return self.inner.commit(state);
+        }
+        self.clip_norm = state.get(CLIP_NORM_KEY).and_then(|t| t.values.first().copied()).unwrap_or(self.clip_norm);
+        let mut inner = NamedTensors::new();
+        for (name, t) in state.iter().filter(|(name, _)| *name != CLIP_NORM_KEY) {
+            inner.insert(name, t.shape.clone(), t.values.clone()).expect("state shape");
+        }
+        self.inner.commit(inner);
     }
 
     fn state(&self) -> NamedTensors {
-        self.inner.state()
+        let mut state = self.inner.state();
+        if self.adapts() {
+            state.insert(CLIP_NORM_KEY, vec![1], vec![self.clip_norm]).expect("scalar");
+        }
+        state
     }
 
     fn privacy(&self) -> Option<PrivacyReport> {
@@ -47,20 +146,34 @@ impl Strategy for ClippedUpdates {
 struct Clipping {
     global: NamedTensors,
     max_norm: f64,
+    /// Whether the aggregate carries the fraction of changes within the norm (for an adaptive norm).
+    count_within: bool,
     inner: Box<dyn Aggregation>,
+    folded: usize,
+    within: usize,
 }
 
 impl Aggregation for Clipping {
     fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
         match clip_change(&self.global, update.tensors, self.max_norm) {
-            Some((_, Some(clipped))) => self.inner.fold(update.with_tensors(&clipped)),
-            // Within the norm, or a mismatch the wrapped rule reports with its index.
-            _ => self.inner.fold(update),
+            Some((norm, clipped)) => {
+                self.inner.fold(update.with_tensors(clipped.as_ref().unwrap_or(update.tensors)))?;
+                self.folded += 1;
+                self.within += usize::from(norm <= self.max_norm);
+                Ok(())
+            }
+            // A mismatch the wrapped rule reports with its index.
+            None => self.inner.fold(update),
         }
     }
 
     fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError> {
-        self.inner.finish()
+        let mut aggregate = self.inner.finish()?;
+        if self.count_within && self.folded > 0 {
+            let within = self.within as f64 / self.folded as f64;
+            aggregate.insert(WITHIN_KEY, vec![1], vec![within as f32]).expect("scalar");
+        }
+        Ok(aggregate)
     }
 }
 
@@ -95,7 +208,7 @@ mod tests {
 
     #[test]
     fn clipping_by_hand() {
-        let clipped = ClippedUpdates { inner: Box::new(FedAvg), max_norm: 5.0 };
+        let clipped = ClippedUpdates::fixed(Box::new(FedAvg), 5.0);
         let global = one([1.0, 1.0]);
         // Deltas [3, 4] (norm 5: kept) and [30, 40] (norm 50: scaled by 1/10 to [3, 4]); equal weights.
         let updates = [(one([4.0, 5.0]), 1), (one([31.0, 41.0]), 1)];
@@ -104,5 +217,30 @@ mod tests {
         // Unclipped, the attacker drags the mean to [17.5, 23].
         let plain = aggregate(&FedAvg, &global, updates.iter().map(|(t, n)| (t, *n))).unwrap();
         assert_eq!(plain.global.get("w").unwrap().values, vec![17.5, 23.0]);
+    }
+
+    #[test]
+    fn the_adaptive_norm_follows_its_quantile_and_resumes() {
+        // C = 1; changes of norm 0.5, 3, 4 and 2 from [0, 0]: one within (b = 1/4), the others scaled to norm 1.
+        let mut clipped = ClippedUpdates::adaptive(Box::new(FedAvg), 1.0, 0.5, 0.2);
+        let updates = [one([0.5, 0.0]), one([3.0, 0.0]), one([0.0, 4.0]), one([-2.0, 0.0])];
+        let step = aggregate(&clipped, &one([0.0, 0.0]), updates.iter().map(|t| (t, 1))).unwrap();
+        assert_eq!(step.global.get("w").unwrap().values, vec![0.125, 0.25]);
+        // C' = exp(-0.2 * (0.25 - 0.5)); the aggregate's count is not a tensor of the model.
+        let want = (0.2f64 * 0.25).exp() as f32;
+        assert_eq!(step.state.get(CLIP_NORM_KEY).unwrap().values, vec![want]);
+        assert!(step.global.get(WITHIN_KEY).is_none());
+        clipped.commit(step.state.clone());
+        assert_eq!(clipped.state(), step.state);
+        // A fresh wrapper given the saved state clips the next round as the committed one does.
+        let mut resumed = ClippedUpdates::adaptive(Box::new(FedAvg), 1.0, 0.5, 0.2);
+        resumed.commit(step.state);
+        let next = [one([2.0, 0.0]), one([0.0, 0.5])];
+        let (a, b) = (
+            aggregate(&clipped, &one([0.0, 0.0]), next.iter().map(|t| (t, 1))).unwrap(),
+            aggregate(&resumed, &one([0.0, 0.0]), next.iter().map(|t| (t, 1))).unwrap(),
+        );
+        assert_eq!(a, b);
+        assert_eq!(a.global.get("w").unwrap().values, vec![want / 2.0, 0.25]);
     }
 }

@@ -17,7 +17,7 @@ use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use super::clipping::clip_change;
+use super::clipping::{ClipNorm, clip_change};
 use super::interface::{Aggregation, Contribution, Step, Strategy};
 use crate::accountant::{PrivacySpent, privacy_spent};
 use crate::error::AggregateError;
@@ -30,28 +30,6 @@ const ROUNDS_KEY: &str = "dp/rounds";
 const CLIP_NORM_KEY: &str = "dp/clip-norm";
 /// The noisy fraction of a round's clients within the clipping norm, carried from the round's aggregate to its step.
 const WITHIN_KEY: &str = "dp/within-fraction";
-
-/// How the clipping norm is chosen.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ClipNorm {
-    Fixed(f64),
-    /// Starts at `initial` and follows the `target_quantile` of the clients' change norms, at rate `lr`, the count
-    /// of clipped clients noised with standard deviation `count_stddev`.
-    Adaptive {
-        initial: f64,
-        target_quantile: f64,
-        lr: f64,
-        count_stddev: f64,
-    },
-}
-
-impl ClipNorm {
-    fn initial(self) -> f64 {
-        match self {
-            ClipNorm::Fixed(norm) | ClipNorm::Adaptive { initial: norm, .. } => norm,
-        }
-    }
-}
 
 /// What a round's metrics record of the privacy spent so far.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -136,12 +114,7 @@ impl Strategy for DpFedAvg {
             }
         }
         let step = self.inner.step(global, mean)?;
-        let clip_norm = match (self.clip, within) {
-            (ClipNorm::Adaptive { target_quantile, lr, .. }, Some(b)) => {
-                (f64::from(self.clip_norm) * (-lr * (f64::from(b) - target_quantile)).exp()) as f32
-            }
-            _ => self.clip_norm,
-        };
+        let clip_norm = self.clip.next(self.clip_norm, within);
         let mut state = step.state;
         state.insert(ROUNDS_KEY, vec![1], vec![(self.rounds + 1) as f32]).expect("scalar");
         state.insert(CLIP_NORM_KEY, vec![1], vec![clip_norm]).expect("scalar");

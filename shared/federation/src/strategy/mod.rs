@@ -16,8 +16,8 @@ mod robust;
 mod scaffold;
 mod server_opt;
 
-pub use clipping::ClippedUpdates;
-pub use dp::{ClipNorm, DpFedAvg, PrivacyReport};
+pub use clipping::{ClipNorm, ClippedUpdates};
+pub use dp::{DpFedAvg, PrivacyReport};
 pub use interface::{Aggregation, Contribution, Step, Strategy, aggregate, conclude};
 pub use mean::{FedAvg, FedProx, WeightedMean};
 pub use qffl::QFedAvg;
@@ -59,7 +59,8 @@ mod tests {
             ("fedadam", Box::new(FedAdaptive::new(Adaptivity::Adam, 0.1, 0.9, 0.99, 1e-3))),
             ("scaffold", Box::new(Scaffold::new(1.0, 8))),
             ("qfedavg", Box::new(QFedAvg { q: 0.2, lr: 0.1 })),
-            ("clipped", Box::new(ClippedUpdates { inner: Box::new(FedAvg), max_norm: 50.0 })),
+            ("clipped", Box::new(ClippedUpdates::fixed(Box::new(FedAvg), 50.0))),
+            ("clipped-adaptive", Box::new(ClippedUpdates::adaptive(Box::new(FedAvg), 50.0, 0.5, 0.2))),
             ("dp", Box::new(DpFedAvg::new(Box::new(FedAvg), 0.5, ClipNorm::Fixed(50.0), 1.0, 1e-5, 3))),
             ("median", Box::new(FedMedian)),
             ("trimmed-mean", Box::new(FedTrimmedAvg { beta: 0.2 })),

@@ -218,3 +218,62 @@ fn a_trainable_tensor_among_the_frozen_ones_is_refused_by_name() {
     let err = Trainer::with_frozen(&cfg, store, trainable, &device, 5).err().expect("refused").to_string();
     assert!(err.contains(&name), "{err}");
 }
+
+/// The instruction reaches the actions: in a batch whose rows come in pairs that share every input but one token of
+/// their instruction (the images, the state, the time, and the noisy actions the expert sees, the noise chosen so),
+/// while their target actions differ, a model can fit both rows of a pair only by reading that token. Trained on it,
+/// the tiny SmolVLA, backbone trained (the embedded default from random weights) or frozen (LeRobot's default
+/// switches: the expert reads the frozen backbone's keys and values), ends far below the same training on the same
+/// batch with the token made equal, where no model can do better than each pair's mean.
+#[test]
+fn a_word_that_alone_tells_two_targets_apart_is_read() {
+    for (freeze_vision_encoder, train_expert_only) in [(false, false), (true, true)] {
+        let cfg = SmolVlaConfig::tiny().with_trained_parts(freeze_vision_encoder, train_expert_only);
+        let (told, blind) = (fit_pairs(&cfg, true), fit_pairs(&cfg, false));
+        println!("expert only {train_expert_only}: loss told the word {told}, blind {blind}");
+        assert!(told * 5.0 < blind, "expert only {train_expert_only}: told {told} against blind {blind}");
+    }
+}
+
+/// The loss after 120 steps on four rows, pairs (0, 1) and (2, 3) alike in every input but, when `told`, one token.
+fn fit_pairs(cfg: &SmolVlaConfig, told: bool) -> f32 {
+    let weights = init_random(&cfg.param_specs(), 1);
+    let device = Device::flex().autodiff();
+    let mut trainer = Trainer::new(cfg, &weights, &device, 5).unwrap();
+    let mut batch = Batch::random(cfg, 4, 11);
+    let (noise, mut time) = trainer.sample_noise_and_time(4);
+    let mut noise = noise.into_data().try_into_vec::<f32>().unwrap();
+    let actions = batch.actions.as_mut().unwrap();
+    let (t, a, max_a) = (cfg.chunk_size, cfg.action_dim(), cfg.max_action_dim);
+    for (first, second) in [(0, 1), (2, 3)] {
+        for image in batch.images.iter_mut() {
+            let per = image.data.len() / 4;
+            image.data.copy_within(first * per..(first + 1) * per, second * per);
+        }
+        let per = batch.state.data.len() / 4;
+        batch.state.data.copy_within(first * per..(first + 1) * per, second * per);
+        let len = batch.lang_len;
+        if told {
+            batch.lang_tokens[second * len + 2] += 100;
+        }
+        // x_t = t noise + (1 - t) actions alike in both rows: noise_2 = noise_1 + (1 - t) / t (actions_1 - actions_2).
+        time[second] = time[first];
+        let ratio = (1.0 - time[first]) / time[first];
+        for step in 0..t {
+            for d in 0..a {
+                let (i, j) = ((first * t + step) * a + d, (second * t + step) * a + d);
+                noise[(second * t + step) * max_a + d] =
+                    noise[(first * t + step) * max_a + d] + ratio * (actions.data[i] - actions.data[j]);
+            }
+            for d in a..max_a {
+                noise[(second * t + step) * max_a + d] = noise[(first * t + step) * max_a + d];
+            }
+        }
+    }
+    batch.action_is_pad = Some(vec![false; 4 * t]);
+    let noise = burn::tensor::Tensor::from_data(burn::tensor::TensorData::new(noise, [4, t, max_a]), &device);
+    for _ in 0..120 {
+        trainer.train_step_with(&batch, noise.clone(), &time, 1e-3).unwrap();
+    }
+    trainer.forward(&batch, noise, &time).unwrap().loss.into_scalar::<f32>()
+}

@@ -55,6 +55,12 @@ impl NamedTensors {
         self.tensors.get_mut(name)
     }
 
+    /// These tensors but those `names` (a wrapping strategy's own scalars taken out of what it hands its rule).
+    pub fn without(mut self, names: &[&str]) -> Self {
+        self.tensors.retain(|name, _| !names.contains(&name.as_str()));
+        self
+    }
+
     /// Tensors in name order.
     pub fn iter(&self) -> impl Iterator<Item = (&str, &Tensor)> {
         self.tensors.iter().map(|(name, t)| (name.as_str(), t))

@@ -100,15 +100,8 @@ impl Strategy for ClippedUpdates {
         if !self.adapts() {
             return self.inner.step(global, aggregate);
         }
-        let mut mean = NamedTensors::new();
-        let mut within = None;
-        for (name, t) in aggregate.iter() {
-            match name {
-                WITHIN_KEY => within = t.values.first().copied(),
-                _ => mean.insert(name, t.shape.clone(), t.values.clone()).expect("aggregate shape"),
-            }
-        }
-        let step = self.inner.step(global, mean)?;
+        let within = aggregate.get(WITHIN_KEY).and_then(|t| t.values.first().copied());
+        let step = self.inner.step(global, aggregate.without(&[WITHIN_KEY]))?;
         let mut state = step.state;
         state.insert(CLIP_NORM_KEY, vec![1], vec![self.clip.next(self.clip_norm, within)]).expect("scalar");
         Ok(Step { global: step.global, state })
@@ -119,11 +112,7 @@ impl Strategy for ClippedUpdates {
             return self.inner.commit(state);
         }
         self.clip_norm = state.get(CLIP_NORM_KEY).and_then(|t| t.values.first().copied()).unwrap_or(self.clip_norm);
-        let mut inner = NamedTensors::new();
-        for (name, t) in state.iter().filter(|(name, _)| *name != CLIP_NORM_KEY) {
-            inner.insert(name, t.shape.clone(), t.values.clone()).expect("state shape");
-        }
-        self.inner.commit(inner);
+        self.inner.commit(state.without(&[CLIP_NORM_KEY]));
     }
 
     fn state(&self) -> NamedTensors {

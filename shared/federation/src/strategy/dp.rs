@@ -105,15 +105,8 @@ impl Strategy for DpFedAvg {
     }
 
     fn step(&self, global: &NamedTensors, aggregate: NamedTensors) -> Result<Step, AggregateError> {
-        let mut mean = NamedTensors::new();
-        let mut within = None;
-        for (name, t) in aggregate.iter() {
-            match name {
-                WITHIN_KEY => within = t.values.first().copied(),
-                _ => mean.insert(name, t.shape.clone(), t.values.clone()).expect("aggregate shape"),
-            }
-        }
-        let step = self.inner.step(global, mean)?;
+        let within = aggregate.get(WITHIN_KEY).and_then(|t| t.values.first().copied());
+        let step = self.inner.step(global, aggregate.without(&[WITHIN_KEY]))?;
         let clip_norm = self.clip.next(self.clip_norm, within);
         let mut state = step.state;
         state.insert(ROUNDS_KEY, vec![1], vec![(self.rounds + 1) as f32]).expect("scalar");
@@ -125,11 +118,7 @@ impl Strategy for DpFedAvg {
         let scalar = |key: &str| state.get(key).and_then(|t| t.values.first().copied());
         self.rounds = scalar(ROUNDS_KEY).map_or(0, |r| r as u64);
         self.clip_norm = scalar(CLIP_NORM_KEY).unwrap_or(self.clip.initial() as f32);
-        let mut inner = NamedTensors::new();
-        for (name, t) in state.iter().filter(|(name, _)| ![ROUNDS_KEY, CLIP_NORM_KEY].contains(name)) {
-            inner.insert(name, t.shape.clone(), t.values.clone()).expect("state shape");
-        }
-        self.inner.commit(inner);
+        self.inner.commit(state.without(&[ROUNDS_KEY, CLIP_NORM_KEY]));
     }
 
     fn state(&self) -> NamedTensors {

@@ -55,7 +55,8 @@ impl ClipNorm {
 /// Clipping around `inner`.
 pub struct ClippedUpdates {
     pub inner: Box<dyn Strategy>,
-    pub clip: ClipNorm,
+    /// Private, as `clip_norm` starts from it: set once by [`ClippedUpdates::fixed`] or [`ClippedUpdates::adaptive`].
+    clip: ClipNorm,
     clip_norm: f32,
 }
 

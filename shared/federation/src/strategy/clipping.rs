@@ -88,12 +88,8 @@ impl Strategy for ClippedUpdates {
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
         Box::new(Clipping {
-            global: global.clone(),
-            max_norm: f64::from(self.clip_norm),
+            round: ClippedRound::new(global, f64::from(self.clip_norm), self.inner.begin(global)),
             count_within: self.adapts(),
-            inner: self.inner.begin(global),
-            folded: 0,
-            within: 0,
         })
     }
 
@@ -134,46 +130,68 @@ impl Strategy for ClippedUpdates {
 }
 
 struct Clipping {
-    global: NamedTensors,
-    max_norm: f64,
+    round: ClippedRound,
     /// Whether the aggregate carries the fraction of changes within the norm (for an adaptive norm).
     count_within: bool,
-    inner: Box<dyn Aggregation>,
-    folded: usize,
-    within: usize,
 }
 
 impl Aggregation for Clipping {
     fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
-        match clip_change(&self.global, update.tensors, self.max_norm) {
-            Some((norm, clipped)) => {
-                self.inner.fold(update.with_tensors(clipped.as_ref().unwrap_or(update.tensors)))?;
-                self.folded += 1;
-                self.within += usize::from(norm <= self.max_norm);
-                Ok(())
-            }
-            // A mismatch the wrapped rule reports with its index.
-            None => self.inner.fold(update),
-        }
+        self.round.fold(update)
     }
 
     fn finish(self: Box<Self>) -> Result<NamedTensors, AggregateError> {
-        let mut aggregate = self.inner.finish()?;
-        if self.count_within && self.folded > 0 {
-            let within = self.within as f64 / self.folded as f64;
+        let (mut aggregate, count) = self.round.finish()?;
+        if self.count_within && count.folded > 0 {
+            let within = count.within as f64 / count.folded as f64;
             aggregate.insert(WITHIN_KEY, vec![1], vec![within as f32]).expect("scalar");
         }
         Ok(aggregate)
     }
 }
 
+/// One round's clip-and-count, the part clipping alone and DP-FedAvg share: every change clipped to `max_norm`
+/// before the wrapped rule folds it, and how many of the folded changes were within the norm (what an adaptive
+/// norm steers by).
+pub(super) struct ClippedRound {
+    global: NamedTensors,
+    max_norm: f64,
+    inner: Box<dyn Aggregation>,
+    count: WithinCount,
+}
+
+/// Of a round's folded changes, how many were within the clipping norm.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct WithinCount {
+    pub folded: usize,
+    pub within: usize,
+}
+
+impl ClippedRound {
+    pub(super) fn new(global: &NamedTensors, max_norm: f64, inner: Box<dyn Aggregation>) -> Self {
+        Self { global: global.clone(), max_norm, inner, count: WithinCount::default() }
+    }
+
+    /// Clips `update`'s change and folds it into the wrapped rule; an update that does not fit the global model
+    /// goes to the wrapped rule as it is, which reports the mismatch with its index.
+    pub(super) fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
+        let Some((norm, clipped)) = clip_change(&self.global, update.tensors, self.max_norm) else {
+            return self.inner.fold(update);
+        };
+        self.inner.fold(update.with_tensors(clipped.as_ref().unwrap_or(update.tensors)))?;
+        self.count.folded += 1;
+        self.count.within += usize::from(norm <= self.max_norm);
+        Ok(())
+    }
+
+    pub(super) fn finish(self) -> Result<(NamedTensors, WithinCount), AggregateError> {
+        Ok((self.inner.finish()?, self.count))
+    }
+}
+
 /// The L2 norm of `update`'s change from `global` (over every tensor), and, when it exceeds `max_norm`, `update`
 /// moved back toward `global` until it does not; `None` when `update` does not fit `global`.
-pub(super) fn clip_change(
-    global: &NamedTensors,
-    update: &NamedTensors,
-    max_norm: f64,
-) -> Option<(f64, Option<NamedTensors>)> {
+fn clip_change(global: &NamedTensors, update: &NamedTensors, max_norm: f64) -> Option<(f64, Option<NamedTensors>)> {
     update.validate(&global.spec()).ok()?;
     let norm = update.distance(global).ok()?;
     if norm <= max_norm {

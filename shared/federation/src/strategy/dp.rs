@@ -17,7 +17,7 @@ use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
-use super::clipping::{ClipNorm, clip_change};
+use super::clipping::{ClipNorm, ClippedRound};
 use super::interface::{Aggregation, Contribution, Step, Strategy};
 use crate::accountant::{PrivacySpent, privacy_spent};
 use crate::error::AggregateError;
@@ -88,7 +88,7 @@ impl Strategy for DpFedAvg {
 
     fn begin(&self, global: &NamedTensors) -> Box<dyn Aggregation> {
         Box::new(DpRound {
-            global: global.clone(),
+            round: ClippedRound::new(global, f64::from(self.clip_norm), self.inner.begin(global)),
             clip_norm: f64::from(self.clip_norm),
             noise_multiplier: self.update_noise_multiplier(),
             count_stddev: match self.clip {
@@ -96,9 +96,6 @@ impl Strategy for DpFedAvg {
                 ClipNorm::Fixed(_) => 0.0,
             },
             rng: StdRng::seed_from_u64(mix(self.seed, self.rounds)),
-            inner: self.inner.begin(global),
-            folded: 0,
-            within: 0,
             total_weight: 0,
             max_weight: 0,
         })
@@ -139,36 +136,27 @@ impl Strategy for DpFedAvg {
 }
 
 struct DpRound {
-    global: NamedTensors,
+    /// The clipping and the count of changes within the norm, as clipping alone does them.
+    round: ClippedRound,
     clip_norm: f64,
     noise_multiplier: f64,
     count_stddev: f64,
     rng: StdRng,
-    inner: Box<dyn Aggregation>,
-    folded: usize,
-    /// Updates whose change was within the clipping norm.
-    within: usize,
     total_weight: u128,
     max_weight: u64,
 }
 
 impl Aggregation for DpRound {
     fn fold(&mut self, update: Contribution<'_>) -> Result<(), AggregateError> {
-        let Some((norm, clipped)) = clip_change(&self.global, update.tensors, self.clip_norm) else {
-            // The wrapped rule reports the mismatch with its index.
-            return self.inner.fold(update);
-        };
         let examples = update.examples;
-        self.inner.fold(update.with_tensors(clipped.as_ref().unwrap_or(update.tensors)))?;
-        self.folded += 1;
-        self.within += usize::from(norm <= self.clip_norm);
+        self.round.fold(update)?;
         self.total_weight += u128::from(examples);
         self.max_weight = self.max_weight.max(examples);
         Ok(())
     }
 
     fn finish(mut self: Box<Self>) -> Result<NamedTensors, AggregateError> {
-        let mut aggregate = self.inner.finish()?;
+        let (mut aggregate, count) = self.round.finish()?;
         let share = self.max_weight as f64 / self.total_weight as f64;
         let stddev = self.noise_multiplier * self.clip_norm * share;
         if stddev > 0.0 {
@@ -183,7 +171,7 @@ impl Aggregation for DpRound {
             0.0 => 0.0,
             s => Normal::new(0.0, s).expect("finite positive standard deviation").sample(&mut self.rng),
         };
-        let within = (self.within as f64 + count_noise) / self.folded as f64;
+        let within = (count.within as f64 + count_noise) / count.folded as f64;
         aggregate.insert(WITHIN_KEY, vec![1], vec![within as f32]).expect("scalar");
         Ok(aggregate)
     }

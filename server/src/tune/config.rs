@@ -28,7 +28,8 @@ pub struct TuneConfig {
     /// schedule fitted to them, as `simulate` would run it). The last is the base's `num-server-rounds`, the budget
     /// the winner and the base are judged at.
     pub rungs: Vec<u64>,
-    /// After each rung but the last, the best 1/`reduction` of its trials (at least one) go on to the next.
+    /// After each rung but the last, the best 1/`reduction` of its trials (at least one) go on to the next, and the
+    /// base with them.
     pub reduction: usize,
     /// Trials run at once (each federation keeps about `num-clients` cores busy).
     #[serde(default = "one")]

@@ -1,7 +1,11 @@
 //! `fedvla tune --config configs/tune/NAME.toml`: a search over a federation's hyperparameters by successive
 //! halving, on the experiment's runner. Trial 0 is the base configuration, the others are drawn from the search
 //! space by the search seed; each rung runs its trials as federations of its budget of rounds, on the same data and
-//! run seed, judges them on the server's held-out loss, and sends the best 1/`reduction` on to the next rung. The
+//! run seed, judges them on the server's held-out loss, and sends the best 1/`reduction` on to the next rung, and
+//! the base with them wherever it is not among them: a short rung's ranking favours what learns fast over what
+//! ends best (the shipped search's first rung of 5 rounds put the main job's configuration 24th of 27, where at
+//! 40 rounds it ended below the search's best), so the winner is the best at the full budget among the
+//! finalists and the base, and a search never recommends what its own runs found worse than the base. The
 //! winner is written whole to `best.toml` (what `fedvla simulate --config` runs), then judged afresh against the
 //! base: both run on seeds, data and sim layouts the search never used (an experiment, `judge/`), with intervals
 //! over seeds and the paired difference. Every run is the runner's, so a killed search resumes where it stopped:
@@ -66,6 +70,9 @@ pub fn run(config: &TuneConfig, on_start: OnStart<'_>) -> anyhow::Result<PathBuf
         alive.sort_by(|a, b| by_loss(at_this_rung(a), at_this_rung(b)).then(a.id.cmp(&b.id)));
         if rung + 1 < config.rungs.len() {
             alive.truncate((alive.len() / config.reduction).max(1));
+            if !alive.iter().any(|trial| trial.id == 0) {
+                alive.push(&trials[0]);
+            }
             let ids: Vec<String> = alive.iter().map(|t| t.id.to_string()).collect();
             println!("on to the next rung: trials {}", ids.join(", "));
         }

@@ -146,7 +146,8 @@ fn markdown(report: &TuneReport, config: &TuneConfig) -> String {
         "{} trials: trial 0 the base configuration ({base}), the others drawn from the space below with search seed \
          {}. Successive halving over rungs of {:?} rounds: every trial is a federation of that many rounds on the same \
          data and run seed, judged on the server's held-out episodes (held-out loss after its last round, lower is \
-         better); after each rung the best 1/{} go on. `-`: not run at that rung.\n",
+         better); after each rung the best 1/{} go on, and the base with them (a short rung can rank it low where it \
+         ends best). `-`: not run at that rung.\n",
         config.trials, report.search_seed, report.rungs, report.reduction
     );
     for (key, range) in &config.space {

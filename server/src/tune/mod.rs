@@ -6,10 +6,12 @@
 //! ends best (the shipped search's first rung of 5 rounds put the main job's configuration 24th of 27, where at
 //! 40 rounds it ended below the search's best), so the winner is the best at the full budget among the
 //! finalists and the base, and a search never recommends what its own runs found worse than the base. The
-//! winner is written whole to `best.toml` (what `fedvla simulate --config` runs), then judged afresh against the
-//! base: both run on seeds, data and sim layouts the search never used (an experiment, `judge/`), with intervals
-//! over seeds and the paired difference. Every run is the runner's, so a killed search resumes where it stopped:
-//! its trials are drawn again from the same seed and every finished run is read back, not run again.
+//! winner is written whole to `best.toml` (what `fedvla simulate --config` runs). Then the best drawn finalist
+//! (the winner, or the runner-up where the base won) is judged afresh against the base: both run on seeds, data
+//! and sim layouts the search never used (an experiment, `judge/`), with intervals over seeds and the paired
+//! difference, which says whether what the search found beats the base beyond its own selection set. Every run is
+//! the runner's, so a killed search resumes where it stopped: its trials are drawn again from the same seed and
+//! every finished run is read back, not run again.
 
 pub mod config;
 pub mod report;
@@ -31,14 +33,14 @@ use crate::experiment::{self, Arm, ExperimentConfig, Mode, last_heldout};
 pub const SEARCH_FILE: &str = "search.toml";
 /// The winner, as a whole run configuration.
 pub const BEST_CONFIG: &str = "best.toml";
-/// The experiment that judges the winner afresh, in the search's folder.
+/// The experiment that judges the search afresh, in the search's folder.
 pub const JUDGE: &str = "judge";
-/// The judged arms.
+/// The judged arms: the base, and the best configuration the search drew.
 pub const BASE_ARM: &str = "base";
-pub const BEST_ARM: &str = "best";
+pub const DRAWN_ARM: &str = "best-drawn";
 
-/// Runs the search (what has not finished yet), writes `best.toml`, judges the winner against the base, and writes
-/// the report. Returns the search's folder.
+/// Runs the search (what has not finished yet), writes `best.toml`, judges the best drawn finalist against the base,
+/// and writes the report. Returns the search's folder.
 pub fn run(config: &TuneConfig, on_start: OnStart<'_>) -> anyhow::Result<PathBuf> {
     let dir = config.dir();
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -78,6 +80,7 @@ pub fn run(config: &TuneConfig, on_start: OnStart<'_>) -> anyhow::Result<PathBuf
         }
     }
     let best = alive.first().copied().context("no trial ran")?;
+    let drawn = alive.iter().copied().find(|trial| trial.id != 0);
     write_best(config, best, results.get(&best.id).and_then(|r| r.last()?.heldout_loss))?;
     let mut records = trial_records(config, &trials, &results);
     records.sort_by(|a, b| {
@@ -94,13 +97,25 @@ pub fn run(config: &TuneConfig, on_start: OnStart<'_>) -> anyhow::Result<PathBuf
     };
     // The search's table stands before the judged runs start: they take as long as the search's last rung again.
     report::write(&tune_report, config)?;
-    println!("best: trial {} ({}); judging it afresh against the base", best.id, best.overrides(&config.space));
-    let judge = judge_experiment(config, best, &dir);
+    match (best.id, drawn) {
+        (0, Some(drawn)) => println!(
+            "best: the base configuration (no drawn trial beat it at the full budget); judging the best drawn, trial \
+             {} ({}), against it afresh",
+            drawn.id,
+            drawn.overrides(&config.space)
+        ),
+        (0, None) => println!("best: the base configuration; judging it afresh"),
+        (id, _) => println!("best: trial {id} ({}); judging it afresh against the base", best.overrides(&config.space)),
+    }
+    let judge = judge_experiment(config, drawn, &dir);
     let judge_dir = experiment::run(&judge, on_start)?;
     let text = std::fs::read(judge_dir.join(REPORT_JSON)).context("reading the judged runs' report")?;
     let judged_report: Report = serde_json::from_slice(&text).context("parsing the judged runs' report")?;
-    tune_report.judged =
-        Some(Judged { report: judged_report, best_minus_base: report::paired_difference(&judge, BASE_ARM, BEST_ARM)? });
+    tune_report.judged = Some(Judged {
+        report: judged_report,
+        drawn: drawn.map(|trial| trial.id),
+        drawn_minus_base: report::paired_difference(&judge, BASE_ARM, DRAWN_ARM)?,
+    });
     report::write(&tune_report, config)?;
     Ok(dir)
 }
@@ -176,12 +191,12 @@ fn trial_records(
         .collect()
 }
 
-/// The experiment that judges the winner afresh: the base and the winner (unless the base won) on the judge's
-/// seeds, with its overrides (the data), final sim evaluations on its layouts.
-pub fn judge_experiment(config: &TuneConfig, best: &Trial, dir: &Path) -> ExperimentConfig {
+/// The experiment that judges the search afresh: the base and the best drawn finalist (none where no drawn trial
+/// reached the last rung) on the judge's seeds, with its overrides (the data), final sim evaluations on its layouts.
+pub fn judge_experiment(config: &TuneConfig, drawn: Option<&Trial>, dir: &Path) -> ExperimentConfig {
     let mut arms = vec![Arm { name: BASE_ARM.into(), mode: Mode::Federated, run_config: String::new() }];
-    if best.id != 0 {
-        arms.push(Arm { name: BEST_ARM.into(), mode: Mode::Federated, run_config: best.overrides(&config.space) });
+    if let Some(drawn) = drawn {
+        arms.push(Arm { name: DRAWN_ARM.into(), mode: Mode::Federated, run_config: drawn.overrides(&config.space) });
     }
     ExperimentConfig {
         name: JUDGE.into(),

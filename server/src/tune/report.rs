@@ -1,5 +1,5 @@
 //! A search's report: `report.json` ([`TuneReport`]: every trial's held-out loss at each rung it ran, the winner,
-//! and once judged, the judged runs' report with the winner's paired difference from the base), `report.md` (its
+//! and once judged, the judged runs' report with the best drawn finalist's paired difference from the base), `report.md` (its
 //! tables) and `trials.png` (each trial's held-out loss over the rungs).
 
 use std::collections::BTreeMap;
@@ -32,7 +32,7 @@ pub struct TuneReport {
     pub trials: Vec<TrialRecord>,
     /// The winner's trial number (0: the base configuration won).
     pub best: usize,
-    /// Once judged: the base and the winner on seeds, data and layouts the search never used.
+    /// Once judged: the base and the best drawn finalist on seeds, data and layouts the search never used.
     pub judged: Option<Judged>,
 }
 
@@ -65,12 +65,15 @@ impl TrialRecord {
     }
 }
 
-/// The judged runs (`judge/`, an experiment of the base and the winner).
+/// The judged runs (`judge/`, an experiment of the base and the best configuration the search drew).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Judged {
     pub report: Report,
-    /// The winner minus the base, paired by seed (none when the base won: nothing to compare).
-    pub best_minus_base: Option<PairedDifference>,
+    /// The trial judged against the base: the best drawn finalist (the winner, or where the base won, the
+    /// runner-up); none where no drawn trial reached the last rung.
+    pub drawn: Option<usize>,
+    /// That trial minus the base, paired by seed.
+    pub drawn_minus_base: Option<PairedDifference>,
 }
 
 /// A difference of figures between two arms run on the same seeds: the mean and Student-t 95% interval of the
@@ -198,15 +201,22 @@ fn markdown(report: &TuneReport, config: &TuneConfig) -> String {
         config.dir().join(super::BEST_CONFIG).display()
     );
     if let Some(judged) = &report.judged {
-        judged_markdown(&mut md, judged, config);
+        judged_markdown(&mut md, judged, report.best, config);
     }
     md
 }
 
-fn judged_markdown(md: &mut String, judged: &Judged, config: &TuneConfig) {
+fn judged_markdown(md: &mut String, judged: &Judged, best: usize, config: &TuneConfig) {
+    let drawn = match judged.drawn {
+        Some(id) if id == best => {
+            format!("the best configuration the search drew (`best-drawn`: trial {id}, the winner)")
+        }
+        Some(id) => format!("the best configuration the search drew (`best-drawn`: trial {id}, which the base beat)"),
+        None => "no drawn configuration (none reached the last rung)".to_owned(),
+    };
     let _ = writeln!(
         md,
-        "\n## Judged afresh\n\nThe base and the best configuration, each on seeds {:?} (the search ran seed {}), with \
+        "\n## Judged afresh\n\nThe base and {drawn}, each on seeds {:?} (the search ran seed {}), with \
          `{}` (data the search never saw), their last models rolled out on {} sim layouts from seed {}. Mean and \
          Student-t 95% interval over seeds; pooled success with its Wilson interval. The full report: \
          `judge/report.md`.\n",
@@ -233,8 +243,8 @@ fn judged_markdown(md: &mut String, judged: &Judged, config: &TuneConfig) {
             arm.episodes
         );
     }
-    match &judged.best_minus_base {
-        None => md.push_str("\nThe base configuration won the search: there is nothing to judge it against.\n"),
+    match &judged.drawn_minus_base {
+        None => md.push_str("\nNo drawn configuration to judge against the base.\n"),
         Some(d) => {
             let verdict = |i: &Interval, lower_is_better: bool| match (i.ci95_high < 0.0, i.ci95_low > 0.0) {
                 (true, _) if lower_is_better => "better",
@@ -244,7 +254,7 @@ fn judged_markdown(md: &mut String, judged: &Judged, config: &TuneConfig) {
             };
             let _ = writeln!(
                 md,
-                "\nBest minus base, paired by seed: held-out loss {} ({}), sim success {} ({}).",
+                "\nBest drawn minus base, paired by seed: held-out loss {} ({}), sim success {} ({}).",
                 interval(&d.heldout_loss, 4),
                 verdict(&d.heldout_loss, true),
                 interval(&d.success_rate, 2),

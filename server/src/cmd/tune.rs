@@ -1,6 +1,6 @@
 //! `fedvla tune --config configs/tune/NAME.toml`: successive halving over a federation's hyperparameters, the
-//! winner judged afresh against the base, then `report.md`, `report.json`, `trials.png` and `best.toml` (see
-//! `fedvla_server::tune`). Killed and started again, it runs only what had not finished.
+//! best drawn configuration judged afresh against the base, then `report.md`, `report.json`, `trials.png` and
+//! `best.toml` (see `fedvla_server::tune`). Killed and started again, it runs only what had not finished.
 
 use std::path::PathBuf;
 
@@ -21,7 +21,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let log = super::support::init_tracing(None, LevelFilter::WARN);
     let dir = config.dir();
     println!(
-        "search {}: {} trials over {} keys, rungs of {:?} rounds (the best 1/{} of each go on), {} at once, into {}",
+        "search {}: {} trials over {} keys, rungs of {:?} rounds (the best 1/{} of each and the base go on), {} at once, \
+         into {}",
         config.name,
         config.trials,
         config.space.len(),

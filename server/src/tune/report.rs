@@ -1,6 +1,6 @@
 //! A search's report: `report.json` ([`TuneReport`]: every trial's held-out loss at each rung it ran, the winner,
-//! and once judged, the judged runs' report with the best drawn finalist's paired difference from the base), `report.md` (its
-//! tables) and `trials.png` (each trial's held-out loss over the rungs).
+//! and once judged, the judged runs' report with the best drawn finalist's paired difference from the base),
+//! `report.md` (its tables) and `trials.png` (each trial's held-out loss over the rungs).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -209,9 +209,11 @@ fn markdown(report: &TuneReport, config: &TuneConfig) -> String {
 fn judged_markdown(md: &mut String, judged: &Judged, best: usize, config: &TuneConfig) {
     let drawn = match judged.drawn {
         Some(id) if id == best => {
-            format!("the best configuration the search drew (`best-drawn`: trial {id}, the winner)")
+            format!("the best configuration the search drew (`{}`: trial {id}, the winner)", super::DRAWN_ARM)
         }
-        Some(id) => format!("the best configuration the search drew (`best-drawn`: trial {id}, which the base beat)"),
+        Some(id) => {
+            format!("the best configuration the search drew (`{}`: trial {id}, which the base beat)", super::DRAWN_ARM)
+        }
         None => "no drawn configuration (none reached the last rung)".to_owned(),
     };
     let _ = writeln!(

@@ -208,11 +208,9 @@ fn markdown(report: &TuneReport, config: &TuneConfig) -> String {
 
 fn judged_markdown(md: &mut String, judged: &Judged, best: usize, config: &TuneConfig) {
     let drawn = match judged.drawn {
-        Some(id) if id == best => {
-            format!("the best configuration the search drew (`{}`: trial {id}, the winner)", super::DRAWN_ARM)
-        }
         Some(id) => {
-            format!("the best configuration the search drew (`{}`: trial {id}, which the base beat)", super::DRAWN_ARM)
+            let standing = if id == best { "the winner" } else { "which the base beat" };
+            format!("the best configuration the search drew (`{}`: trial {id}, {standing})", super::DRAWN_ARM)
         }
         None => "no drawn configuration (none reached the last rung)".to_owned(),
     };

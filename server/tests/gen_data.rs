@@ -231,7 +231,7 @@ const TASKS: [TaskKind; 3] = [TaskKind::Stack, TaskKind::PushToTarget, TaskKind:
 /// Each episode's instruction, from the seeds file's seeds and tasks.
 fn recorded_instructions(root: &Path) -> Vec<String> {
     let recorded = recorded_seeds(root).expect("seeds file").expect("written");
-    recorded.seeds.iter().enumerate().map(|(k, &seed)| recorded.task_of(k).instruction(seed)).collect()
+    (0..recorded.seeds.len()).map(|k| recorded.arrangement_of(k).expect("recorded").instruction()).collect()
 }
 
 /// The distinct strings of `strings`, sorted.
@@ -281,6 +281,71 @@ fn multi_task_episodes_cycle_through_the_tasks_each_with_its_own_instruction() {
             assert_eq!(dataset.vector("action", row), Some(&expert.actions[i][..]), "{task} seed {seed} frame {i}");
         }
     }
+}
+
+#[test]
+fn every_goal_records_each_layout_of_pick_colour_once_per_cube_and_only_its_words_differ() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("every-goal");
+    let tasks = vec![TaskKind::PickColour, TaskKind::CubeInBowl];
+    let opts = GenDataOptions {
+        episodes: 8,
+        seed: 0,
+        tasks: tasks.clone(),
+        image_size: 32,
+        every_goal: true,
+        ..Default::default()
+    };
+    let summary = generate_dataset(&out, &opts, |_| {}).expect("generate");
+    let recorded = recorded_seeds(&out).expect("seeds file").expect("written");
+    assert_eq!((&recorded.seeds, recorded.subjects.len()), (&summary.seeds, 8));
+    let dataset = LeRobotDataset::open(&out).expect("open");
+    assert_eq!(dataset.episodes().len(), 8);
+
+    // Pick-colour's episodes (0, 2, 4, 6): one layout, then each cube of it in turn, then the next layout; the
+    // cube-in-bowl episodes between them keep to one episode a seed, the cube their seed drew.
+    let colour_episodes: Vec<usize> = (0..8).step_by(2).collect();
+    let seeds: Vec<u64> = colour_episodes.iter().map(|&k| recorded.seeds[k]).collect();
+    let subjects: Vec<usize> = colour_episodes.iter().map(|&k| recorded.subjects[k]).collect();
+    assert_eq!(seeds[..3], [seeds[0]; 3], "the first layout thrice: {seeds:?}");
+    assert!(seeds[3] > seeds[0], "then a fresh layout: {seeds:?}");
+    assert_eq!(subjects, [0, 1, 2, 0]);
+    for k in (1..8).step_by(2) {
+        let drawn = Arrangement::from_seed(TaskKind::CubeInBowl, recorded.seeds[k]).subject;
+        assert_eq!((recorded.task_of(k), recorded.subjects[k]), (TaskKind::CubeInBowl, drawn), "episode {k}");
+    }
+    let mut all_seeds = recorded.seeds.clone();
+    all_seeds.sort_unstable();
+    all_seeds.dedup();
+    assert_eq!(all_seeds.len(), 6, "three pick-colour episodes share a layout, no other seed repeats: {all_seeds:?}");
+
+    let instructions = recorded_instructions(&out);
+    let named: Vec<&str> = colour_episodes[..3].iter().map(|&k| instructions[k].as_str()).collect();
+    assert_eq!(
+        named,
+        ["put the red cube in the bowl", "put the green cube in the bowl", "put the yellow cube in the bowl"]
+    );
+    let rows = |k: usize| dataset.episodes()[k].dataset_from_index..dataset.episodes()[k].dataset_to_index;
+    for k in 0..8 {
+        assert_eq!(dataset.episodes()[k].tasks, [instructions[k].clone()], "episode {k}");
+        // Each episode is the expert's on its arrangement, frame for frame.
+        let arrangement = recorded.arrangement_of(k).expect("recorded");
+        let mut actions = Vec::new();
+        let noise = fedvla_sim::ActionNoise::NONE;
+        let end = fedvla_sim::ExpertEnd::PlanDone;
+        let scene =
+            fedvla_sim::drive_expert_in(arrangement, recorded.seeds[k], end, MAX_EPISODE_FRAMES, noise, |_, a| {
+                actions.push(*a)
+            });
+        assert!(scene.success(), "episode {k} was recorded although the expert fails on it");
+        let recorded_actions: Vec<&[f32]> = rows(k).map(|row| dataset.vector("action", row).expect("action")).collect();
+        assert_eq!(recorded_actions, actions.iter().map(|a| &a[..]).collect::<Vec<_>>(), "episode {k}");
+    }
+    // A layout's three episodes start from the same state and part ways by the cube they go for.
+    let first = |k: usize| dataset.vector("observation.state", rows(k).start).expect("state").to_vec();
+    assert_eq!((first(0), first(2)), (first(4), first(4)));
+    let tenth_action = |k: usize| dataset.vector("action", rows(k).start + 10).expect("action").to_vec();
+    assert!(tenth_action(0) != tenth_action(2) && tenth_action(2) != tenth_action(4));
 }
 
 /// `dir` of this package, canonical: the LeRobot checker's chroot binds host directories at the same paths.

@@ -256,6 +256,9 @@ pub struct RunConfig {
     pub dataset_seed: u64,
     #[serde(with = "task_names")]
     pub dataset_tasks: Vec<TaskKind>,
+    /// Absent from run directories written before it existed, whose recordings drew one goal a layout.
+    #[serde(default)]
+    pub dataset_every_goal: bool,
     pub num_clients: usize,
     pub partitioning: Partitioning,
     pub partition_alpha: f64,

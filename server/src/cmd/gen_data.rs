@@ -29,6 +29,10 @@ pub struct Args {
     /// standard deviation (degrees), while the dataset records the expert's goals (0: none).
     #[arg(long, default_value_t = GenDataOptions::default().action_noise_degrees)]
     action_noise: f32,
+    /// Record each layout of a task whose instruction decides the goal (pick-colour) once per goal, each cube
+    /// in turn the one named, instead of once for the goal its seed drew.
+    #[arg(long)]
+    every_goal: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -43,6 +47,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         tasks: if args.tasks.is_empty() { GenDataOptions::default().tasks } else { args.tasks },
         image_size: args.image_size,
         action_noise_degrees: args.action_noise,
+        every_goal: args.every_goal,
     };
     let bar = ProgressBar::new(args.episodes as u64);
     bar.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} episodes, {msg} ({elapsed}, eta {eta})")?);

@@ -3,7 +3,10 @@
 //!
 //! Successful episodes take consecutive seeds from `seed` on, episode k on task k modulo the tasks
 //! asked for, recorded with its own instruction as its LeRobot task; a seed whose episode the expert
-//! fails is skipped (and reported), so the dataset holds only demonstrations that solve their task. One
+//! fails is skipped (and reported), so the dataset holds only demonstrations that solve their task.
+//! Asked for every goal, a task whose instruction decides the goal records each layout once per goal
+//! (its next episodes of that task), so the same first frames lead to each cube and only the words
+//! tell which. One
 //! thread simulates and renders the next episode while another encodes the current one (the
 //! writer encodes its two cameras in parallel): the output depends on the seed only.
 
@@ -14,7 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use fedvla_aggregator::config::task_names;
 use fedvla_data::{CameraSpec, DatasetSpec, DatasetWriter, Episode, Frame, RgbImage, WrittenDataset};
-use fedvla_sim::{ActionNoise, Camera, ExpertEnd, FPS, TaskKind, drive_expert_on, render};
+use fedvla_sim::{ActionNoise, Arrangement, Camera, ExpertEnd, FPS, TaskKind, drive_expert_in, render};
 
 /// Frame budget of an episode; the expert finishes in 150-250 frames when it succeeds.
 pub const MAX_EPISODE_FRAMES: u32 = 400;
@@ -32,11 +35,22 @@ pub struct GenDataOptions {
     /// Standard deviation, degrees, of the perturbation the arm executes the expert's goals with
     /// (recovery demonstrations, see `fedvla_sim::perturbation`); 0 records the expert as it is.
     pub action_noise_degrees: f32,
+    /// Where a task's instruction decides the goal, record each of its layouts once per goal (the task's
+    /// next episodes), not once for the goal its seed drew: the words are then the only input that tells
+    /// a layout's episodes apart, so a policy cannot fit the opening frames without reading them.
+    pub every_goal: bool,
 }
 
 impl Default for GenDataOptions {
     fn default() -> Self {
-        Self { episodes: 50, seed: 0, tasks: vec![TaskKind::CubeInBowl], image_size: 256, action_noise_degrees: 0.0 }
+        Self {
+            episodes: 50,
+            seed: 0,
+            tasks: vec![TaskKind::CubeInBowl],
+            image_size: 256,
+            action_noise_degrees: 0.0,
+            every_goal: false,
+        }
     }
 }
 
@@ -87,12 +101,26 @@ pub struct RecordedSeeds {
     /// a cube-in-bowl dataset's file is what it was before there were other tasks.
     #[serde(default = "first_task_only", skip_serializing_if = "is_first_task_only", with = "task_names")]
     pub tasks: Vec<TaskKind>,
+    /// Episode i moved cube `subjects[i]` of its seed's arrangement, where the recording asked for every goal
+    /// ([`GenDataOptions::every_goal`]); empty where every episode moved the cube its seed drew.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub subjects: Vec<usize>,
 }
 
 impl RecordedSeeds {
     /// The task episode `episode` was recorded on.
     pub fn task_of(&self, episode: usize) -> TaskKind {
         self.tasks[episode % self.tasks.len()]
+    }
+
+    /// What stood on the table as episode `episode` started, and the cube it moved; `None` past the
+    /// recorded episodes.
+    pub fn arrangement_of(&self, episode: usize) -> Option<Arrangement> {
+        let arrangement = Arrangement::from_seed(self.task_of(episode), *self.seeds.get(episode)?);
+        Some(match self.subjects.get(episode) {
+            Some(&subject) => arrangement.with_subject(subject),
+            None => arrangement,
+        })
     }
 }
 
@@ -140,6 +168,8 @@ pub fn ensure_unrecorded(root: &Path, seeds: std::ops::Range<u64>) -> anyhow::Re
 /// The expert's episode on one seed, every frame with its state, action and camera images.
 struct RecordedEpisode {
     seed: u64,
+    /// The cube it moved, among its arrangement's.
+    subject: usize,
     episode: Episode,
 }
 
@@ -180,7 +210,7 @@ pub fn generate_dataset(
         });
     let max_failures = opts.episodes.max(10);
 
-    let (written, seeds, skipped_seeds) = std::thread::scope(|scope| {
+    let (written, (seeds, subjects), skipped_seeds) = std::thread::scope(|scope| {
         let (episode_tx, episode_rx) = mpsc::sync_channel::<RecordedEpisode>(1);
         let recorder_events = events.clone();
         let recorder = scope.spawn(move || record_episodes(opts, max_failures, &episode_tx, &recorder_events));
@@ -194,14 +224,15 @@ pub fn generate_dataset(
         let written = encoder.join().map_err(|_| anyhow::anyhow!("the dataset writer panicked"))?;
         // A recorder that stops early leaves the writer short of episodes: its error is the cause.
         let skipped = recorded?;
-        let (written, seeds) = written?;
-        anyhow::Ok((written, seeds, skipped))
+        let (written, recorded) = written?;
+        anyhow::Ok((written, recorded.into_iter().unzip::<_, _, Vec<u64>, Vec<usize>>(), skipped))
     })?;
     let record = RecordedSeeds {
         seeds: seeds.clone(),
         skipped: skipped_seeds.clone(),
         action_noise_degrees: opts.action_noise_degrees,
         tasks: opts.tasks.clone(),
+        subjects: if opts.every_goal { subjects } else { Vec::new() },
     };
     let path = written.root.join(SEEDS_FILE);
     fedvla_fs::write_atomic(&path, &serde_json::to_vec_pretty(&record).expect("seeds serialize"))
@@ -216,7 +247,8 @@ pub fn generate_dataset(
     })
 }
 
-/// Runs the expert on seeds `opts.seed..`, each on the task of the next episode to send, and sends every
+/// Runs the expert on seeds `opts.seed..`, each on the task of the next episode to send (with
+/// `opts.every_goal`, a task whose instruction decides the goal on one seed per goal of it), and sends every
 /// successful episode to `episodes` until `opts.episodes` were sent; returns the seeds it skipped. Stops early
 /// when the writer has hung up.
 fn record_episodes(
@@ -228,16 +260,38 @@ fn record_episodes(
     let mut skipped = Vec::new();
     // Per task, as `opts.tasks` lists them: the expert's tries and successes, for the error that gives up.
     let mut tries = vec![(0usize, 0usize); opts.tasks.len()];
+    // Per task: the layout seed whose goals are not all recorded yet, and the next goal to record on it.
+    let mut goals_left: Vec<Option<(u64, usize)>> = vec![None; opts.tasks.len()];
     let mut sent = 0;
-    let mut seed = opts.seed;
+    let mut next_seed = opts.seed;
     while sent < opts.episodes {
         let slot = sent % opts.tasks.len();
         let task = opts.tasks[slot];
+        let (seed, arrangement) = match goals_left[slot].take() {
+            Some((seed, subject)) => (seed, Arrangement::from_seed(task, seed).with_subject(subject)),
+            None => {
+                let seed = next_seed;
+                next_seed = next_seed.checked_add(1).context("ran out of seeds")?;
+                let arrangement = Arrangement::from_seed(task, seed);
+                (
+                    seed,
+                    if opts.every_goal && task.instruction_decides() {
+                        arrangement.with_subject(0)
+                    } else {
+                        arrangement
+                    },
+                )
+            }
+        };
+        let subject = arrangement.subject;
+        if opts.every_goal && task.instruction_decides() && subject + 1 < arrangement.cubes.len() {
+            goals_left[slot] = Some((seed, subject + 1));
+        }
         tries[slot].0 += 1;
-        match record_episode(task, seed, opts.image_size, ActionNoise::degrees(opts.action_noise_degrees)) {
+        match record_episode(arrangement, seed, opts.image_size, ActionNoise::degrees(opts.action_noise_degrees)) {
             Ok(episode) => {
                 tries[slot].1 += 1;
-                if episodes.send(RecordedEpisode { seed, episode }).is_err() {
+                if episodes.send(RecordedEpisode { seed, subject, episode }).is_err() {
                     break;
                 }
                 sent += 1;
@@ -267,17 +321,17 @@ fn record_episodes(
                 }
             }
         }
-        seed = seed.checked_add(1).context("ran out of seeds")?;
     }
     Ok(skipped)
 }
 
-/// The expert's episode on the scene of `task` and `seed`, executed with `noise`, with both cameras rendered at
-/// `size`x`size` before every action (LeRobot's observation-then-action order) and the scene's instruction as
-/// its task, or the frames it ran if it failed.
-fn record_episode(task: TaskKind, seed: u64, size: u32, noise: ActionNoise) -> Result<Episode, u32> {
+/// The expert's episode on the scene of `arrangement` (its perturbation drawn from `seed`), executed with
+/// `noise`, with both cameras rendered at `size`x`size` before every action (LeRobot's observation-then-action
+/// order) and the scene's instruction as its task, or the frames it ran if it failed.
+fn record_episode(arrangement: Arrangement, seed: u64, size: u32, noise: ActionNoise) -> Result<Episode, u32> {
     let mut frames = Vec::new();
-    let scene = drive_expert_on(task, seed, ExpertEnd::PlanDone, MAX_EPISODE_FRAMES, noise, |scene, action| {
+    let end = ExpertEnd::PlanDone;
+    let scene = drive_expert_in(arrangement, seed, end, MAX_EPISODE_FRAMES, noise, |scene, action| {
         let images = Camera::ALL
             .iter()
             .map(|&camera| RgbImage {
@@ -292,14 +346,14 @@ fn record_episode(task: TaskKind, seed: u64, size: u32, noise: ActionNoise) -> R
 }
 
 /// Encodes the episodes received into `writer` and, once all `expected` arrived, finishes the dataset;
-/// returns it with the episodes' seeds. Short of episodes it does not finish, so no metadata marks
-/// the directory as a complete dataset.
+/// returns it with the episodes' seeds and the cubes they moved. Short of episodes it does not finish, so no
+/// metadata marks the directory as a complete dataset.
 fn write_episodes(
     mut writer: DatasetWriter,
     expected: usize,
     episodes: &mpsc::Receiver<RecordedEpisode>,
     events: &mpsc::Sender<GenProgress>,
-) -> anyhow::Result<(WrittenDataset, Vec<u64>)> {
+) -> anyhow::Result<(WrittenDataset, Vec<(u64, usize)>)> {
     let mut seeds = Vec::new();
     for recorded in episodes {
         writer
@@ -310,7 +364,7 @@ fn write_episodes(
             seed: recorded.seed,
             frames: recorded.episode.frames.len(),
         });
-        seeds.push(recorded.seed);
+        seeds.push((recorded.seed, recorded.subject));
     }
     anyhow::ensure!(seeds.len() == expected, "recording stopped after {} of {expected} episodes", seeds.len());
     Ok((writer.finish()?, seeds))

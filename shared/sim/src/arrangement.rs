@@ -122,9 +122,16 @@ impl Arrangement {
         self.task.instruction_decides().then(|| self.naming((self.subject + 1) % self.cubes.len()))
     }
 
+    /// This table with cube `subject` the one to move: where the instruction decides the goal, the
+    /// same layout asking for another cube (a recording that shows every goal of a layout).
+    pub fn with_subject(self, subject: usize) -> Self {
+        assert!(subject < self.cubes.len(), "cube {subject} of {}", self.cubes.len());
+        Arrangement { subject, ..self }
+    }
+
     /// The instruction this arrangement would give if cube `subject` were the one to move.
     fn naming(&self, subject: usize) -> String {
-        Arrangement { subject, ..self.clone() }.instruction()
+        self.clone().with_subject(subject).instruction()
     }
 }
 

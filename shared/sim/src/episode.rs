@@ -2,6 +2,7 @@
 //! checks.
 
 use crate::arm::JOINT_COUNT;
+use crate::arrangement::Arrangement;
 use crate::expert::Expert;
 use crate::perturbation::{ActionNoise, Perturbation};
 use crate::scene::Scene;
@@ -54,9 +55,22 @@ pub fn drive_expert_on(
     end: ExpertEnd,
     max_frames: u32,
     noise: ActionNoise,
+    on_frame: impl FnMut(&Scene, &[f32; JOINT_COUNT]),
+) -> Scene {
+    drive_expert_in(Arrangement::from_seed(task, seed), seed, end, max_frames, noise, on_frame)
+}
+
+/// [`drive_expert_on`] from `arrangement` instead of the one `seed` draws (its goal changed, say:
+/// [`Arrangement::with_subject`]); `seed` still seeds the perturbation.
+pub fn drive_expert_in(
+    arrangement: Arrangement,
+    seed: u64,
+    end: ExpertEnd,
+    max_frames: u32,
+    noise: ActionNoise,
     mut on_frame: impl FnMut(&Scene, &[f32; JOINT_COUNT]),
 ) -> Scene {
-    let mut scene = Scene::with_task(task, seed);
+    let mut scene = Scene::from_arrangement(arrangement);
     let mut expert = Expert::new(&scene);
     let mut perturbation = Perturbation::new(noise, seed);
     while scene.frame() < max_frames {

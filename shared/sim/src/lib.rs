@@ -38,7 +38,8 @@ pub use arm::{JOINT_COUNT, JOINT_NAMES};
 pub use arrangement::{Arrangement, CubeColour};
 pub use camera::Camera;
 pub use episode::{
-    EpisodeOutcome, ExpertEnd, drive_expert, drive_expert_on, run_expert_episode, run_expert_episode_on,
+    EpisodeOutcome, ExpertEnd, drive_expert, drive_expert_in, drive_expert_on, run_expert_episode,
+    run_expert_episode_on,
 };
 pub use expert::Expert;
 pub use goal::Goal;

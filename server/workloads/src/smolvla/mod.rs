@@ -27,7 +27,7 @@ use fedvla_learner::{HeldOutEvaluator, ShardExamples, SmolVlaTrainer};
 use fedvla_policy::config::Feature;
 use fedvla_policy::weights::{ParamStore, init_random, safetensors_bytes_as};
 use fedvla_policy::{NormStats, PolicyDir, SmolVlaConfig, StoredDtype, WeightMap};
-use fedvla_sim::{Arrangement, TaskKind};
+use fedvla_sim::TaskKind;
 
 use fedvla_aggregator::config::{ComputeDevice, EMBEDDED_DATASET, ExportDtype, Partitioning, RunConfig, WorkloadKind};
 use fedvla_aggregator::registry::{ShardOffer, VolunteerOffer};
@@ -128,6 +128,7 @@ pub fn ensure_dataset(config: &RunConfig) -> anyhow::Result<PathBuf> {
         tasks: config.dataset_tasks.clone(),
         image_size: model_config(config)?.resize_imgs_with_padding.1 as u32,
         action_noise_degrees: config.dataset_action_noise as f32,
+        every_goal: config.dataset_every_goal,
     };
     generate_dataset(&root, &options, |event| match event {
         GenProgress::Frame { total_frames, .. } => bar.set_message(format!("{total_frames} frames")),
@@ -162,7 +163,9 @@ fn embedded_dataset(config: &RunConfig, image_size: usize) -> PathBuf {
         0 => String::new(),
         seed => format!("_seed{seed}"),
     };
-    Path::new(EMBEDDED_DATASET).join(format!("{}ep_{image_size}px{noise}{tasks}{first_seed}", config.dataset_episodes))
+    let every_goal = if config.dataset_every_goal { "_every-goal" } else { "" };
+    Path::new(EMBEDDED_DATASET)
+        .join(format!("{}ep_{image_size}px{noise}{tasks}{first_seed}{every_goal}", config.dataset_episodes))
 }
 
 /// The partitioner's strategy for the configuration's `partitioning` (and `partition-alpha`).
@@ -194,10 +197,10 @@ pub fn episodes_to_partition(
             )
         })?;
         let azimuth = |e: &EpisodeTask| -> anyhow::Result<f32> {
-            let seed = recorded.seeds.get(e.episode_index).with_context(|| {
+            let arrangement = recorded.arrangement_of(e.episode_index).with_context(|| {
                 format!("{} lists no seed for episode {} of {}", SEEDS_FILE, e.episode_index, root.display())
             })?;
-            let cube = Arrangement::from_seed(recorded.task_of(e.episode_index), *seed).subject().position;
+            let cube = arrangement.subject().position;
             Ok(cube.x.atan2(-cube.y))
         };
         let mut keyed = episodes.iter().map(|e| Ok((azimuth(e)?, *e))).collect::<anyhow::Result<Vec<_>>>()?;

@@ -6,9 +6,8 @@
 //! fails is skipped (and reported), so the dataset holds only demonstrations that solve their task.
 //! Asked for every goal, a task whose instruction decides the goal records each layout once per goal
 //! (its next episodes of that task), so the same first frames lead to each cube and only the words
-//! tell which. One
-//! thread simulates and renders the next episode while another encodes the current one (the
-//! writer encodes its two cameras in parallel): the output depends on the seed only.
+//! tell which. One thread simulates and renders the next episode while another encodes the current
+//! one (the writer encodes its two cameras in parallel): the output depends on the seed only.
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -92,7 +91,7 @@ pub const SEEDS_FILE: &str = "meta/fedvla_seeds.json";
 pub struct RecordedSeeds {
     /// Episode i was recorded from the scene of `seeds[i]`.
     pub seeds: Vec<u64>,
-    /// Seeds the expert failed on (no episode).
+    /// Seeds the expert failed on (no episode; recording every goal, no episode of some goal of it).
     pub skipped: Vec<u64>,
     /// The perturbation the episodes were executed with, degrees (0: none).
     #[serde(default)]
@@ -272,15 +271,10 @@ fn record_episodes(
             None => {
                 let seed = next_seed;
                 next_seed = next_seed.checked_add(1).context("ran out of seeds")?;
-                let arrangement = Arrangement::from_seed(task, seed);
-                (
-                    seed,
-                    if opts.every_goal && task.instruction_decides() {
-                        arrangement.with_subject(0)
-                    } else {
-                        arrangement
-                    },
-                )
+                let drawn = Arrangement::from_seed(task, seed);
+                // Every goal in turn, from the first cube on, instead of the one the seed drew.
+                let every_goal = opts.every_goal && task.instruction_decides();
+                (seed, if every_goal { drawn.with_subject(0) } else { drawn })
             }
         };
         let subject = arrangement.subject;
